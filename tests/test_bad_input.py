@@ -1,0 +1,51 @@
+"""Bad input: one clear line naming the key, value and what is allowed; exit 2; no MLflow run."""
+
+from __future__ import annotations
+
+import pytest
+
+from tests.conftest import TINY, all_runs, compose_cfg, run_cli
+from walkers.errors import ConfigError
+from walkers.train import train
+
+CASES = [
+    # (overrides, words the one-line message must contain)
+    (["algo.lr=-1"], ["algo.lr=-1", "> 0"]),
+    (["algo.batch_size=0"], ["algo.batch_size=0", "> 0"]),
+    (["algo.batch_size=512", "algo.buffer_size=256"], ["algo.batch_size=512", "algo.buffer_size"]),
+    (["algo.gamma=1.5"], ["algo.gamma=1.5", "(0, 1]"]),
+    (["algo.tau=0"], ["algo.tau=0", "(0, 1]"]),
+    (["total_steps=-5"], ["total_steps=-5", "integer > 0"]),
+    (["total_steps=10.5"], ["total_steps=10.5", "integer"]),
+    (["eval_every=5000", "total_steps=1000"], ["eval_every=5000", "total_steps"]),
+    (["device=tpu"], ["device='tpu'", "auto, cpu, cuda"]),
+    (["optimized_metric=loss"], ["optimized_metric='loss'", "final/return_last10"]),
+    (["env.id=NoSuchEnv-v0"], ["env.id='NoSuchEnv-v0'", "Gymnasium"]),
+    (["env.id=CartPole-v1"], ["env.id='CartPole-v1'", "Discrete", "continuous"]),
+    (["resume=0123456789abcdef"], ["resume='0123456789abcdef'", "not a run"]),
+    (["tracking.uri=nosuchscheme://x"], ["tracking.uri='nosuchscheme://x'", "sqlite"]),
+]
+
+
+@pytest.mark.parametrize("overrides,expected", CASES, ids=[" ".join(c[0]) for c in CASES])
+def test_bad_value_is_rejected_before_any_run(store, overrides, expected):
+    cfg = compose_cfg(["env=pendulum", *TINY, *store["overrides"], *overrides])
+    with pytest.raises(ConfigError) as error:
+        train(cfg)
+    message = str(error.value)
+    assert "\n" not in message
+    for word in expected:
+        assert word in message
+    if not overrides[0].startswith("tracking.uri"):
+        assert all_runs(store["client"]) == []
+
+
+@pytest.mark.parametrize("case", [0, 10, 12], ids=lambda i: " ".join(CASES[i][0]))
+def test_cli_prints_one_line_and_exits_2(store, case):
+    overrides, expected = CASES[case]
+    result = run_cli(["env=pendulum", *TINY, *store["overrides"], *overrides], cwd=store["path"])
+    assert result.returncode == 2, result.stderr[-2000:]
+    error_lines = [line for line in result.stderr.splitlines() if line.startswith("error:")]
+    assert len(error_lines) == 1 and "Traceback" not in result.stderr, result.stderr[-2000:]
+    assert all(word in error_lines[0] for word in expected)
+    assert all_runs(store["client"]) == []

@@ -1,0 +1,1 @@
+"""Agents. Each algorithm is one module here plus one ``conf/algo/*.yaml``."""

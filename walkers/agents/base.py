@@ -1,0 +1,67 @@
+"""The Agent interface: all the trainer, evaluator and checkpoints know about an algorithm.
+
+An agent never sees Hydra, MLflow or the environment loop. It is built from plain
+hyperparameters plus the environment's shapes (``obs_dim``, ``action_low``, ``action_high``),
+and the trainer drives it with four calls per env step:
+
+    action = agent.act(obs, explore=True)
+    agent.observe(Transition(obs, action, reward, next_obs, terminated, truncated))
+    losses = agent.update()        # {} when it is not time to learn (warm-up, mid-episode ...)
+
+``update`` returns detached scalar tensors (not floats) so the hot loop never forces a
+device sync; the trainer converts them only when it logs.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+
+@dataclass(frozen=True, slots=True)
+class Transition:
+    obs: np.ndarray
+    action: np.ndarray
+    reward: float
+    next_obs: np.ndarray
+    terminated: bool  # the MDP ended: no bootstrapping from next_obs
+    truncated: bool  # cut by a time limit: next_obs still has value
+
+    @property
+    def episode_over(self) -> bool:
+        return self.terminated or self.truncated
+
+
+class Agent(ABC):
+    """Base for all algorithms. Subclasses keep their networks and optimizers as attributes."""
+
+    device: torch.device
+
+    @abstractmethod
+    def act(self, obs: np.ndarray, explore: bool) -> np.ndarray:
+        """Action for one observation, in the env's units; ``explore=False`` is the greedy policy."""
+
+    @abstractmethod
+    def observe(self, transition: Transition) -> None:
+        """Record one environment step."""
+
+    @abstractmethod
+    def update(self) -> dict[str, torch.Tensor]:
+        """Learn from what was observed if it is time to; return named scalar diagnostics."""
+
+    @abstractmethod
+    def state_dict(self, with_buffer: bool = False) -> dict:
+        """Everything needed to resume: networks, optimizers, counters, RNG states."""
+
+    @abstractmethod
+    def load_state_dict(self, state: dict) -> None: ...
+
+
+def resolve_device(device: str) -> torch.device:
+    """``auto`` -> cuda when available, else cpu."""
+    if device == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(device)

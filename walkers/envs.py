@@ -1,0 +1,69 @@
+"""Environments from an env config: gymnasium id, time limit, kwargs, optional reward shaping.
+
+Every training env records the *true* episode return before any shaping wrapper
+(``RecordEpisodeStatistics`` is the innermost wrapper), so what the platform reports is always the
+environment's own return. Evaluation envs get no shaping at all.
+"""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+
+from walkers.errors import ConfigError
+
+
+class FallPenaltyWrapper(gym.Wrapper):
+    """The BipedalWalker tutorial's fall handling: a reward of -100 (falling) becomes ``-1``.
+
+    The episode still terminates there. Only the learning signal changes, never the reported return.
+    """
+
+    def __init__(self, env: gym.Env, fall_reward: float = -1.0):
+        super().__init__(env)
+        self.fall_reward = fall_reward
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        if reward <= -100:
+            reward = self.fall_reward
+        return obs, reward, terminated, truncated, info
+
+
+def make_env(env_cfg, *, shaping: bool = True, render_mode: str | None = None) -> gym.Env:
+    """Build one environment from an env config (``id``, ``max_episode_steps``, ``kwargs``...).
+
+    Raises :class:`ConfigError` for an unknown id or a non-continuous action space.
+    """
+    env_id = env_cfg["id"]
+    if env_id not in gym.registry:
+        raise ConfigError(
+            f"env.id={env_id!r} is not a registered Gymnasium environment "
+            "(e.g. Walker2d-v5, Hopper-v5, Pendulum-v1; see gymnasium.pprint_registry())"
+        )
+    kwargs = dict(env_cfg.get("kwargs") or {})
+    env = gym.make(
+        env_id,
+        max_episode_steps=env_cfg.get("max_episode_steps"),
+        render_mode=render_mode,
+        **kwargs,
+    )
+    if not isinstance(env.action_space, gym.spaces.Box):
+        env.close()
+        raise ConfigError(
+            f"env.id={env_id!r} has a {type(env.action_space).__name__} action space; "
+            "walkers' algorithms need a continuous (Box) action space"
+        )
+    env = gym.wrappers.RecordEpisodeStatistics(env)
+    if shaping and env_cfg.get("fall_penalty") is not None:
+        env = FallPenaltyWrapper(env, env_cfg["fall_penalty"])
+    return env
+
+
+def env_spaces(env: gym.Env) -> dict:
+    """The shapes an agent is built from."""
+    return {
+        "obs_dim": int(np.prod(env.observation_space.shape)),
+        "action_low": env.action_space.low.tolist(),
+        "action_high": env.action_space.high.tolist(),
+    }

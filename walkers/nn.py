@@ -1,0 +1,136 @@
+"""Networks: MLPs, a tanh actor scaled to the action bounds, and critic ensembles.
+
+Critics are stored as *ensembles*: every layer holds the weights of all members stacked along a
+leading dimension and runs them with one batched matmul. TD3's twin critics are an ensemble of
+two; DDPG's single critic an ensemble of one. Members share no parameters, so optimizing the
+ensemble with an elementwise optimizer (Adam) trains each member independently.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+
+def mlp(in_dim: int, out_dim: int, hidden_sizes: Sequence[int]) -> nn.Sequential:
+    """Linear-ReLU stack with a linear output layer."""
+    layers: list[nn.Module] = []
+    for width in hidden_sizes:
+        layers += [nn.Linear(in_dim, width), nn.ReLU()]
+        in_dim = width
+    layers.append(nn.Linear(in_dim, out_dim))
+    return nn.Sequential(*layers)
+
+
+class Actor(nn.Module):
+    """Deterministic policy: MLP -> tanh -> affine map onto [action_low, action_high]."""
+
+    def __init__(self, obs_dim, act_dim, hidden_sizes, action_low, action_high):
+        super().__init__()
+        self.net = mlp(obs_dim, act_dim, hidden_sizes)
+        low = torch.as_tensor(action_low, dtype=torch.float32)
+        high = torch.as_tensor(action_high, dtype=torch.float32)
+        self.register_buffer("action_scale", (high - low) / 2)
+        self.register_buffer("action_bias", (high + low) / 2)
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        return torch.tanh(self.net(obs)) * self.action_scale + self.action_bias
+
+
+class EnsembleLinear(nn.Module):
+    """``n`` independent linear layers applied with one batched matmul.
+
+    Input ``(n, batch, in)`` (or ``(batch, in)``, shared by all members); output ``(n, batch, out)``.
+    ``members`` selects a subset (TD3's actor loss reads only the first critic). Initialised like
+    ``nn.Linear`` member by member.
+    """
+
+    def __init__(self, n: int, in_dim: int, out_dim: int):
+        super().__init__()
+        bound = 1 / math.sqrt(in_dim)
+        self.weight = nn.Parameter(torch.empty(n, in_dim, out_dim).uniform_(-bound, bound))
+        self.bias = nn.Parameter(torch.empty(n, 1, out_dim).uniform_(-bound, bound))
+
+    def forward(self, x: torch.Tensor, members: slice = slice(None)) -> torch.Tensor:
+        weight, bias = self.weight[members], self.bias[members]
+        if x.dim() == 2:
+            x = x.expand(weight.shape[0], *x.shape)
+        return torch.baddbmm(bias, x, weight)
+
+
+class EnsembleLayerNorm(nn.Module):
+    """LayerNorm over the feature dimension with a separate affine transform per member."""
+
+    def __init__(self, n: int, dim: int):
+        super().__init__()
+        self.weight = nn.Parameter(torch.ones(n, 1, dim))
+        self.bias = nn.Parameter(torch.zeros(n, 1, dim))
+
+    def forward(self, x: torch.Tensor, members: slice = slice(None)) -> torch.Tensor:
+        return torch.addcmul(self.bias[members], F.layer_norm(x, x.shape[-1:]), self.weight[members])
+
+
+class MLPCriticEnsemble(nn.Module):
+    """``n`` Q-networks Q_i(s, a) = MLP_i([s, a]) -> tensor ``(n, batch)``.
+
+    The architecture of the TD3 paper (and of "our DDPG" there).
+    """
+
+    def __init__(self, obs_dim: int, act_dim: int, hidden_sizes: Sequence[int], n: int = 2):
+        super().__init__()
+        dims = [obs_dim + act_dim, *hidden_sizes]
+        self.hidden = nn.ModuleList(EnsembleLinear(n, a, b) for a, b in zip(dims[:-1], dims[1:]))
+        self.out = EnsembleLinear(n, dims[-1], 1)
+
+    def forward(self, obs, action, members: slice = slice(None)) -> torch.Tensor:
+        x = torch.cat([obs, action], dim=-1)
+        for layer in self.hidden:
+            x = F.relu(layer(x, members))
+        return self.out(x, members).squeeze(-1)
+
+
+class BranchCriticEnsemble(nn.Module):
+    """The tutorial's configurable DDPG critic, as ``n`` members -> ``(n, batch)``.
+
+    The state goes through ``hidden_sizes`` layers of Linear + LayerNorm + ReLU; the action enters
+    through its own linear layer at the last hidden width; the two branches merge by
+    ``relu(state_branch + relu(action_branch))`` and a linear head gives Q(s, a).
+    """
+
+    def __init__(self, obs_dim: int, act_dim: int, hidden_sizes: Sequence[int], n: int = 1):
+        super().__init__()
+        dims = [obs_dim, *hidden_sizes]
+        self.state_layers = nn.ModuleList(
+            EnsembleLinear(n, a, b) for a, b in zip(dims[:-1], dims[1:])
+        )
+        self.state_norms = nn.ModuleList(EnsembleLayerNorm(n, b) for b in dims[1:])
+        self.action_layer = EnsembleLinear(n, act_dim, dims[-1])
+        self.out = EnsembleLinear(n, dims[-1], 1)
+
+    def forward(self, obs, action, members: slice = slice(None)) -> torch.Tensor:
+        x = obs
+        for layer, norm in zip(self.state_layers, self.state_norms):
+            x = F.relu(norm(layer(x, members), members))
+        x = F.relu(x + F.relu(self.action_layer(action, members)))
+        return self.out(x, members).squeeze(-1)
+
+
+CRITIC_ARCHITECTURES = {"mlp": MLPCriticEnsemble, "layernorm_branch": BranchCriticEnsemble}
+
+
+def make_critic(architecture: str, obs_dim, act_dim, hidden_sizes, n: int) -> nn.Module:
+    if architecture not in CRITIC_ARCHITECTURES:
+        raise ValueError(
+            f"critic_architecture={architecture!r} is not one of {sorted(CRITIC_ARCHITECTURES)}"
+        )
+    return CRITIC_ARCHITECTURES[architecture](obs_dim, act_dim, hidden_sizes, n)
+
+
+@torch.no_grad()
+def soft_update(target: nn.Module, source: nn.Module, tau: float) -> None:
+    """Polyak averaging theta' <- theta' + tau * (theta - theta'), one fused foreach op."""
+    torch._foreach_lerp_(list(target.parameters()), list(source.parameters()), tau)

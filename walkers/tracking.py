@@ -1,0 +1,173 @@
+"""The only module that talks to MLflow.
+
+A :class:`Tracker` owns one MLflow run. Metrics are buffered and written in batches (a sqlite
+write per metric would cost more than a TD3 update); :meth:`Tracker.flush` is called right after
+each checkpoint, so what MLflow holds never runs ahead of the last checkpoint and a resumed run
+re-logs nothing twice. A store that fails mid-run does not stop training: unsent metrics are
+kept and retried at the next flush, and written to a local file if they still can't be sent.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from collections.abc import Mapping
+from pathlib import Path
+
+from mlflow.entities import Metric, Param, RunTag
+from mlflow.exceptions import MlflowException
+from mlflow.tracking import MlflowClient
+
+from walkers.errors import ConfigError
+
+log = logging.getLogger(__name__)
+
+MLFLOW_MAX_PARAMS_PER_BATCH = 100
+#: Statuses a run ends with.
+FINISHED, FAILED, KILLED = "FINISHED", "FAILED", "KILLED"
+
+
+def ui_url(experiment_id: str, run_id: str | None = None, host: str = "http://127.0.0.1:5000"):
+    """Direct link to the training-runs table (the UI opens a GenAI overview otherwise)."""
+    url = f"{host}/#/experiments/{experiment_id}/runs"
+    return f"{url}/{run_id}" if run_id else url
+
+
+def _artifact_location(uri: str) -> str | None:
+    """Keep a sqlite store's artifacts beside its database file (``mlartifacts/``)."""
+    if uri.startswith("sqlite:///"):
+        db = Path(uri.removeprefix("sqlite:///")).resolve()
+        return (db.parent / "mlartifacts").as_uri()
+    return None
+
+
+def _with_retries(fn, *args, attempts: int = 8, **kwargs):
+    """Call ``fn``, retrying sqlite's transient "database is locked" under parallel jobs."""
+    for attempt in range(attempts):
+        try:
+            return fn(*args, **kwargs)
+        except MlflowException as e:
+            if "locked" not in str(e) or attempt == attempts - 1:
+                raise
+            time.sleep(0.2 * 2**attempt)
+
+
+def get_or_create_experiment(client: MlflowClient, name: str) -> str:
+    """Experiment id for ``name``, creating it (safely against a concurrent creator)."""
+    experiment = _with_retries(client.get_experiment_by_name, name)
+    if experiment is not None:
+        return experiment.experiment_id
+    try:
+        return _with_retries(
+            client.create_experiment, name, artifact_location=_artifact_location(client.tracking_uri)
+        )
+    except MlflowException:
+        experiment = client.get_experiment_by_name(name)
+        if experiment is None:
+            raise
+        return experiment.experiment_id
+
+
+def connect(uri: str) -> MlflowClient:
+    """A client for ``uri``; an unreachable or unusable store is a :class:`ConfigError`."""
+    try:
+        client = MlflowClient(tracking_uri=uri)
+        _with_retries(client.search_experiments, max_results=1)
+    except Exception as e:
+        raise ConfigError(
+            f"tracking.uri={uri!r} cannot be used ({type(e).__name__}: {str(e).splitlines()[0]}); "
+            "use sqlite:///<file>.db, http(s)://<server> or unset MLFLOW_TRACKING_URI"
+        ) from None
+    return client
+
+
+def flatten(d: Mapping, prefix: str = "") -> dict[str, str]:
+    """{"algo": {"lr": 3e-4}} -> {"algo.lr": "0.0003"} (lists stay whole: "[256, 256]")."""
+    out = {}
+    for key, value in d.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, Mapping) and value:
+            out.update(flatten(value, f"{name}."))
+        else:
+            out[name] = str(value)
+    return out
+
+
+class Tracker:
+    """One MLflow run: params, buffered metrics, artifacts, end status."""
+
+    def __init__(self, client: MlflowClient, run_id: str, experiment_id: str, spool_dir: Path):
+        self.client, self.run_id, self.experiment_id = client, run_id, experiment_id
+        self.spool_dir = Path(spool_dir)
+        self._pending: list[Metric] = []
+
+    @classmethod
+    def start(cls, client, experiment: str, run_name: str, tags: dict, spool_dir) -> Tracker:
+        experiment_id = get_or_create_experiment(client, experiment)
+        run = _with_retries(client.create_run, experiment_id, run_name=run_name, tags=tags)
+        return cls(client, run.info.run_id, experiment_id, spool_dir)
+
+    @classmethod
+    def reopen(cls, client, run_id: str, spool_dir) -> Tracker:
+        run = client.get_run(run_id)
+        _with_retries(client.update_run, run_id, status="RUNNING")
+        return cls(client, run_id, run.info.experiment_id, spool_dir)
+
+    @property
+    def url(self) -> str:
+        return ui_url(self.experiment_id, self.run_id)
+
+    def log_params(self, params: Mapping[str, str]) -> None:
+        items = [Param(k, str(v)) for k, v in params.items()]
+        for i in range(0, len(items), MLFLOW_MAX_PARAMS_PER_BATCH):
+            chunk = items[i : i + MLFLOW_MAX_PARAMS_PER_BATCH]
+            _with_retries(self.client.log_batch, self.run_id, params=chunk)
+
+    def set_tags(self, tags: Mapping[str, str]) -> None:
+        _with_retries(
+            self.client.log_batch, self.run_id, tags=[RunTag(k, str(v)) for k, v in tags.items()]
+        )
+
+    def log_metrics(self, metrics: Mapping[str, float], step: int) -> None:
+        """Queue metrics at env step ``step``; they are written at the next :meth:`flush`."""
+        now = int(time.time() * 1000)
+        self._pending.extend(Metric(k, float(v), now, int(step)) for k, v in metrics.items())
+
+    def flush(self) -> bool:
+        """Send queued metrics; on failure keep them for the next try. True if all were sent."""
+        while self._pending:
+            chunk = self._pending[:1000]
+            try:
+                _with_retries(self.client.log_batch, self.run_id, metrics=chunk)
+            except Exception as e:
+                log.warning("MLflow unreachable, %d metrics kept for later: %s", len(self._pending), e)
+                return False
+            del self._pending[: len(chunk)]
+        return True
+
+    def log_artifact(self, path, artifact_path: str | None = None) -> bool:
+        try:
+            _with_retries(self.client.log_artifact, self.run_id, str(path), artifact_path)
+            return True
+        except Exception as e:
+            log.warning("could not upload %s to MLflow (kept locally): %s", path, e)
+            return False
+
+    def download_artifact(self, artifact_path: str, dst_dir) -> Path:
+        Path(dst_dir).mkdir(parents=True, exist_ok=True)
+        return Path(self.client.download_artifacts(self.run_id, artifact_path, str(dst_dir)))
+
+    def end(self, status: str) -> None:
+        """Flush and set the final status; metrics MLflow never took go to a local jsonl file."""
+        if not self.flush():
+            spool = self.spool_dir / "unlogged_metrics.jsonl"
+            spool.parent.mkdir(parents=True, exist_ok=True)
+            with spool.open("a") as f:
+                for m in self._pending:
+                    f.write(json.dumps({"key": m.key, "value": m.value, "step": m.step}) + "\n")
+            log.error("%d metrics could not be logged; saved to %s", len(self._pending), spool)
+        try:
+            _with_retries(self.client.set_terminated, self.run_id, status)
+        except Exception as e:
+            log.error("could not set MLflow run %s to %s: %s", self.run_id, status, e)

@@ -1,0 +1,183 @@
+"""``python -m walkers.train``: train one agent on one environment, logged to MLflow.
+
+    python -m walkers.train algo=td3 env=walker2d seed=3 total_steps=300000
+    python -m walkers.train resume=<mlflow run id>
+    python -m walkers.train --help | --cfg job
+
+Builds the env and the agent from the composed config, runs the :class:`~walkers.trainer.Trainer`
+and returns the value of ``optimized_metric`` (what an Optuna sweep maximizes).
+"""
+
+from __future__ import annotations
+
+import logging
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import hydra
+import torch
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig, OmegaConf
+
+from walkers import PROJECT_ROOT, checkpoints, tracking
+from walkers.agents.base import Agent, resolve_device
+from walkers.envs import env_spaces, make_env
+from walkers.errors import CheckpointError, ConfigError
+from walkers.trainer import Trainer, TrainerSettings
+from walkers.validate import validate
+
+log = logging.getLogger("walkers")
+
+#: Keys a resumed run takes from the new command line; everything else comes from its checkpoint.
+RESUME_OVERRIDABLE = (
+    "total_steps", "device", "torch_threads", "progress", "checkpoint_every", "log_every",
+    "save_buffer", "work_dir",
+)
+
+
+#: Config-selected classes ``instantiate`` may build: agents only.
+AGENT_TARGETS = ["walkers.agents.*"]
+
+
+def build_agent(cfg: DictConfig, spaces: dict) -> Agent:
+    """Instantiate ``cfg.algo`` (its ``_target_`` class) for an env with ``spaces``."""
+    kwargs = OmegaConf.to_container(cfg.algo, resolve=True)
+    kwargs.pop("name", None)
+    return hydra.utils.instantiate(
+        kwargs,
+        **spaces,
+        device=str(resolve_device(cfg.device)),
+        seed=cfg.seed,
+        _convert_="all",
+        _execution_whitelist_=AGENT_TARGETS,
+    )
+
+
+def git_commit() -> str:
+    try:
+        out = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=PROJECT_ROOT, capture_output=True, text=True, timeout=5
+        )
+        return out.stdout.strip() if out.returncode == 0 else "unknown"
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+def _override_keys(overrides) -> set[str]:
+    return {o.split("=", 1)[0].lstrip("+~") for o in overrides}
+
+
+def _load_resume_checkpoint(client, cfg: DictConfig, overrides) -> tuple[DictConfig, dict]:
+    """The run's stored config (with the allowed new overrides) and its ``last.pt``."""
+    run_id = str(cfg.resume)
+    try:
+        client.get_run(run_id)
+    except Exception:
+        raise ConfigError(
+            f"resume={run_id!r} is not a run in tracking.uri={cfg.tracking.uri!r}; "
+            "pass the run id shown at the end of a training run or in the MLflow UI"
+        ) from None
+    dst = Path(cfg.work_dir) / "runs" / run_id / "download"
+    try:
+        path = Path(client.download_artifacts(run_id, "checkpoints/last.pt", str(dst)))
+    except Exception:
+        raise CheckpointError(f"run {run_id} has no checkpoints/last.pt artifact to resume from") from None
+    state = checkpoints.load(path)
+    stored = OmegaConf.create(state["config"])
+    given = _override_keys(overrides)
+    for key in RESUME_OVERRIDABLE:
+        if key in given:
+            stored[key] = cfg[key]
+    stored.tracking = cfg.tracking
+    stored.resume = run_id
+    return stored, state
+
+
+def train(cfg: DictConfig, overrides: list[str] | tuple = ()) -> float:
+    """Train as ``cfg`` says; ``overrides`` are the command-line overrides (used by resume)."""
+    client = tracking.connect(cfg.tracking.uri)
+    resume_state = None
+    if cfg.resume:  # the run's own config, plus the overrides allowed on resume
+        cfg, resume_state = _load_resume_checkpoint(client, cfg, overrides)
+    validate(cfg)
+    if cfg.torch_threads:
+        torch.set_num_threads(cfg.torch_threads)
+
+    env = make_env(cfg.env)
+    eval_env = make_env(cfg.env, shaping=False)
+    agent = build_agent(cfg, env_spaces(env))
+
+    algo, env_id = cfg.algo.name, cfg.env.id
+    if resume_state is None:
+        tracker = tracking.Tracker.start(
+            client,
+            cfg.tracking.experiment,
+            run_name=cfg.tracking.run_name or f"{algo}-{env_id}-s{cfg.seed}",
+            tags={"algo": algo, "env": env_id, "seed": str(cfg.seed),
+                  "git_commit": git_commit(), "mlflow.source.git.commit": git_commit()},
+            spool_dir=Path(cfg.work_dir) / "spool",
+        )
+        tracker.log_params(tracking.flatten(OmegaConf.to_container(cfg, resolve=True)))
+    else:
+        tracker = tracking.Tracker.reopen(client, cfg.resume, Path(cfg.work_dir) / "spool")
+
+    run_dir = Path(cfg.work_dir) / "runs" / tracker.run_id
+    config_yaml = run_dir / "config.yaml"
+    config_yaml.parent.mkdir(parents=True, exist_ok=True)
+    config_yaml.write_text(OmegaConf.to_yaml(cfg, resolve=True))
+    tracker.log_artifact(config_yaml)
+
+    trainer = Trainer(
+        agent, env, eval_env, tracker,
+        TrainerSettings(
+            total_steps=cfg.total_steps, eval_every=cfg.eval_every,
+            eval_episodes=cfg.eval_episodes, checkpoint_every=cfg.checkpoint_every,
+            log_every=cfg.log_every, seed=cfg.seed, threshold=cfg.env.threshold,
+            save_buffer=cfg.save_buffer, progress=cfg.progress,
+        ),
+        checkpoint_dir=run_dir / "checkpoints",
+        checkpoint_extra={"config": OmegaConf.to_container(cfg, resolve=True)},
+    )
+    if resume_state is not None:
+        trainer.restore(resume_state)
+        log.info("resuming run %s at step %d", tracker.run_id, trainer.progress.step)
+
+    status = tracking.FAILED
+    try:
+        summary = trainer.run()
+        status = tracking.FINISHED
+    except KeyboardInterrupt:
+        status = tracking.KILLED
+        raise
+    finally:
+        tracker.end(status)
+        env.close()
+        eval_env.close()
+        log.info("MLflow run %s ended %s", tracker.run_id, status)
+        log.info("open it: `make ui`, then %s", tracker.url)
+    value = summary.get(cfg.optimized_metric, float("nan"))
+    log.info("%s = %s", cfg.optimized_metric, value)
+    return value
+
+
+def _raise_keyboard_interrupt(signum, frame):
+    raise KeyboardInterrupt(f"signal {signum}")
+
+
+@hydra.main(config_path="../conf", config_name="train")
+def main(cfg: DictConfig) -> float:
+    signal.signal(signal.SIGTERM, _raise_keyboard_interrupt)  # SIGTERM ends the run like Ctrl-C
+    try:
+        return train(cfg, HydraConfig.get().overrides.task)
+    except (ConfigError, CheckpointError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        sys.exit(2)
+    except KeyboardInterrupt:
+        print("interrupted: last checkpoint saved, MLflow run marked KILLED", file=sys.stderr)
+        sys.exit(130)
+
+
+if __name__ == "__main__":
+    main()

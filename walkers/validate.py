@@ -1,0 +1,115 @@
+"""Check a composed config before any work starts (and before an MLflow run exists).
+
+Each rule names a dotted key, a predicate and, for the error message, what is allowed. Keys that
+an algorithm does not have are skipped, so one table serves every algorithm.
+"""
+
+from __future__ import annotations
+
+from numbers import Real
+
+from omegaconf import DictConfig, OmegaConf
+
+from walkers.errors import ConfigError
+
+OPTIMIZABLE_METRICS = (
+    "final/return_mean",
+    "final/return_last10",
+    "final/auc",
+    "final/steps_to_threshold",
+)
+DEVICES = ("auto", "cpu", "cuda")
+
+
+def _int(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _number(v) -> bool:
+    return isinstance(v, Real) and not isinstance(v, bool)
+
+
+def positive_int(v) -> bool:
+    return _int(v) and v > 0
+
+
+def non_negative_int(v) -> bool:
+    return _int(v) and v >= 0
+
+
+def positive(v) -> bool:
+    return _number(v) and v > 0
+
+
+def non_negative(v) -> bool:
+    return _number(v) and v >= 0
+
+
+def unit_interval(v) -> bool:
+    return _number(v) and 0 < v <= 1
+
+
+def positive_or_null(v) -> bool:
+    return v is None or positive(v)
+
+
+def layer_sizes(v) -> bool:
+    return isinstance(v, list) and len(v) > 0 and all(positive_int(x) for x in v)
+
+
+RULES: list[tuple[str, callable, str]] = [
+    ("seed", non_negative_int, "an integer >= 0"),
+    ("total_steps", positive_int, "an integer > 0"),
+    ("eval_every", positive_int, "an integer > 0"),
+    ("eval_episodes", positive_int, "an integer > 0"),
+    ("checkpoint_every", positive_int, "an integer > 0"),
+    ("log_every", positive_int, "an integer > 0"),
+    ("torch_threads", lambda v: v is None or positive_int(v), "null or an integer > 0"),
+    ("device", lambda v: v in DEVICES, "one of " + ", ".join(DEVICES)),
+    ("optimized_metric", lambda v: v in OPTIMIZABLE_METRICS, "one of " + ", ".join(OPTIMIZABLE_METRICS)),
+    ("algo.lr", positive, "a number > 0"),
+    ("algo.actor_lr", positive_or_null, "null or a number > 0"),
+    ("algo.critic_lr", positive_or_null, "null or a number > 0"),
+    ("algo.batch_size", positive_int, "an integer > 0"),
+    ("algo.buffer_size", positive_int, "an integer > 0"),
+    ("algo.learning_starts", non_negative_int, "an integer >= 0"),
+    ("algo.hidden_sizes", layer_sizes, "a non-empty list of integers > 0, e.g. [256,256]"),
+    ("algo.critic_hidden_sizes", lambda v: v is None or layer_sizes(v), "null or a list of integers > 0"),
+    ("algo.gamma", unit_interval, "a number in (0, 1]"),
+    ("algo.tau", unit_interval, "a number in (0, 1]"),
+    ("algo.policy_delay", positive_int, "an integer > 0"),
+    ("algo.policy_noise", non_negative, "a number >= 0"),
+    ("algo.noise_clip", non_negative, "a number >= 0"),
+    ("algo.exploration_noise", non_negative, "a number >= 0"),
+    ("env.max_episode_steps", lambda v: v is None or positive_int(v), "null or an integer > 0"),
+    ("env.threshold", _number, "a number"),
+]
+
+_MISSING = object()
+
+
+def check(key: str, value, ok: bool, allowed: str) -> None:
+    if not ok:
+        raise ConfigError(f"{key}={value!r} is not allowed: must be {allowed}")
+
+
+def validate(cfg: DictConfig) -> None:
+    """Raise :class:`ConfigError` naming the first bad key, its value and what is allowed."""
+    for key, predicate, allowed in RULES:
+        value = OmegaConf.select(cfg, key, default=_MISSING)
+        if value is _MISSING:
+            continue
+        if OmegaConf.is_config(value):
+            value = OmegaConf.to_container(value, resolve=True)
+        check(key, value, predicate(value), allowed)
+    check("eval_every", cfg.eval_every, cfg.eval_every <= cfg.total_steps,
+          f"at most total_steps ({cfg.total_steps})")
+    algo = cfg.algo
+    if "batch_size" in algo and "buffer_size" in algo:
+        check("algo.batch_size", algo.batch_size, algo.batch_size <= algo.buffer_size,
+              f"at most algo.buffer_size ({algo.buffer_size})")
+    if cfg.device == "cuda":
+        import torch
+
+        check("device", "cuda", torch.cuda.is_available(),
+              "auto or cpu on this machine (torch sees no CUDA device)")

@@ -11,7 +11,7 @@ from walkers.validate import validate
 
 GROUPS = {
     group: sorted(p.stem for p in (PROJECT_ROOT / "conf" / group).glob("*.yaml"))
-    for group in ("algo", "env", "tracking")
+    for group in ("algo", "env", "tracking", "experiment")
 }
 
 
@@ -55,8 +55,14 @@ def test_cli_help_and_cfg_job(tmp_path):
     help_ = run_cli(["--help"], cwd=tmp_path)
     assert help_.returncode == 0, help_.stderr
     assert "algo: " + ", ".join(GROUPS["algo"]) in help_.stdout  # the menu of config groups
-    assert "env: " in help_.stdout and "sweeps: " in help_.stdout
+    assert "env: " + ", ".join(GROUPS["env"]) in help_.stdout
     job = run_cli(["--cfg", "job", "algo=td3", "env=pendulum", "seed=3"], cwd=tmp_path)
     assert job.returncode == 0, job.stderr
     cfg = OmegaConf.create(job.stdout)
     assert cfg.seed == 3 and cfg.env.id == "Pendulum-v1" and cfg.algo.name == "td3"
+
+
+@pytest.mark.parametrize("experiment", GROUPS["experiment"])
+def test_experiment_presets_compose(experiment):
+    cfg = compose_cfg([f"experiment={experiment}"])
+    validate(cfg)

@@ -97,11 +97,13 @@ def _load_resume_checkpoint(client, cfg: DictConfig, overrides) -> tuple[DictCon
 
 def train(cfg: DictConfig, overrides: list[str] | tuple = ()) -> float:
     """Train as ``cfg`` says; ``overrides`` are the command-line overrides (used by resume)."""
-    client = tracking.connect(cfg.tracking.uri)
     resume_state = None
+    if not cfg.resume:
+        validate(cfg)  # before anything is created
+    client = tracking.connect(cfg.tracking.uri)
     if cfg.resume:  # the run's own config, plus the overrides allowed on resume
         cfg, resume_state = _load_resume_checkpoint(client, cfg, overrides)
-    validate(cfg)
+        validate(cfg)
     if cfg.torch_threads:
         torch.set_num_threads(cfg.torch_threads)
 

@@ -1,0 +1,107 @@
+"""REINFORCE, DDPG and TD3 on the walking-robot catalogue: tiny runs, learning, the NaN guard."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from tests.conftest import TINY, all_runs, compose_cfg
+from walkers.agents.base import Transition
+from walkers.agents.ddpg import DDPG
+from walkers.agents.reinforce import Reinforce, returns_to_go
+from walkers.envs import make_env
+from walkers.train import train
+
+OFF_POLICY_TINY = ["algo.learning_starts=200", "algo.batch_size=64"]
+REINFORCE_TINY = ["algo.episodes_per_update=1"]
+
+
+@pytest.mark.parametrize("env", ["pendulum", "bipedal_walker", "walker2d"])
+@pytest.mark.parametrize("algo", ["reinforce", "ddpg", "td3"])
+def test_every_algo_completes_a_tiny_run(store, algo, env):
+    extra = REINFORCE_TINY if algo == "reinforce" else OFF_POLICY_TINY
+    train(compose_cfg([f"algo={algo}", f"env={env}", *TINY, *extra, *store["overrides"]]))
+    (run,) = all_runs(store["client"])
+    assert run.info.status == "FINISHED"
+    assert run.data.tags["algo"] == algo
+    expected = {"eval/return_mean", "eval/return_std", "final/return_mean", "final/return_last10",
+                "final/auc", "final/steps_to_threshold", "perf/sps"}
+    assert expected <= set(run.data.metrics)
+    if env != "walker2d" or algo != "reinforce":  # short walker episodes: at least one ends
+        assert "train/episode_return" in run.data.metrics
+
+
+def test_ddpg_tutorial_variant_layernorm_critic_and_ou_noise(store):
+    cfg = compose_cfg([
+        "algo=ddpg", "env=pendulum", "algo.critic_architecture=layernorm_branch",
+        "algo.critic_hidden_sizes=[64,32,16]", "algo.noise_type=ou", *TINY, *OFF_POLICY_TINY,
+        *store["overrides"],
+    ])
+    train(cfg)
+    (run,) = all_runs(store["client"])
+    assert run.info.status == "FINISHED" and run.data.params["algo.noise_type"] == "ou"
+
+
+def test_ddpg_is_the_shared_core_with_one_critic():
+    agent = DDPG(3, [-2.0], [2.0], learning_starts=0, batch_size=8)
+    q = agent.critic(torch.zeros(5, 3), torch.zeros(5, 1))
+    assert q.shape == (1, 5)  # one critic (TD3 has two)
+    assert (agent.policy_delay, agent.policy_noise) == (1, 0.0)
+
+
+def test_returns_to_go():
+    np.testing.assert_allclose(returns_to_go(np.array([1.0, 1.0, 1.0]), 0.5), [1.75, 1.5, 1.0])
+
+
+def test_reinforce_nan_guard_skips_the_update_and_training_continues():
+    env = make_env({"id": "Pendulum-v1", "max_episode_steps": 20})
+    agent = Reinforce(3, [-2.0], [2.0], episodes_per_update=1, seed=0)
+    obs, _ = env.reset(seed=0)
+
+    def play_episode(reward_override=None):
+        nonlocal obs
+        for t in range(20):
+            action = agent.act(obs, explore=True)
+            next_obs, reward, term, trunc, _ = env.step(action)
+            reward = reward if reward_override is None else reward_override
+            agent.observe(Transition(obs, action, reward, next_obs, term, t == 19))
+            obs = next_obs
+        obs, _ = env.reset()
+        return agent.update()
+
+    before = {k: v.clone() for k, v in agent.policy.state_dict().items()}
+    metrics = play_episode(reward_override=float("nan"))  # a non-finite loss
+    assert metrics["health/skipped_updates"].item() == 1
+    for k, v in agent.policy.state_dict().items():
+        assert torch.equal(v, before[k]) and torch.isfinite(v).all()
+    metrics = play_episode()  # and the next update goes through
+    assert metrics["health/skipped_updates"].item() == 1
+    assert any(not torch.equal(v, before[k]) for k, v in agent.policy.state_dict().items())
+
+
+def test_fall_penalty_shapes_learning_but_not_reported_returns():
+    env = make_env({"id": "BipedalWalker-v3", "max_episode_steps": 1600, "fall_penalty": -1.0})
+    env.reset(seed=0)
+    rewards, info, done = [], {}, False
+    while not done:  # falling forward: legs limp, hull hits the ground
+        _, reward, term, trunc, info = env.step(np.array([1.0, -1.0, 1.0, -1.0], dtype=np.float32))
+        rewards.append(reward)
+        done = term or trunc
+    assert term and min(rewards) == -1.0  # the -100 fall became -1 for the learner
+    assert info["episode"]["r"] < sum(rewards) - 90  # the recorded return is the env's own
+
+
+def test_discrete_action_space_is_rejected_before_training(store):
+    from walkers.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="Discrete"):
+        train(compose_cfg(["env=pendulum", "env.id=CartPole-v1", *TINY, *store["overrides"]]))
+    assert all_runs(store["client"]) == []
+
+
+def test_any_continuous_gymnasium_id_works_by_override(store):
+    train(compose_cfg(["algo=reinforce", "env=pendulum", "env.id=MountainCarContinuous-v0",
+                       "env.max_episode_steps=100", *TINY, *REINFORCE_TINY, *store["overrides"]]))
+    (run,) = all_runs(store["client"])
+    assert run.data.tags["env"] == "MountainCarContinuous-v0" and run.info.status == "FINISHED"

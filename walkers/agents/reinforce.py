@@ -1,0 +1,195 @@
+"""REINFORCE (Williams 1992) for continuous actions, with the original study's stabilizers.
+
+The policy is a Gaussian with a state-dependent mean and a learned, state-independent log-std.
+After every ``episodes_per_update`` complete episodes it takes one gradient step on
+
+    L(theta) = - sum_t log pi(a_t | s_t) * G_t  (/ number of steps)   [- entropy_coef * H]
+
+with G_t the discounted return-to-go. Stabilizers (each a switch, on by default):
+
+- ``normalize_returns``: G_t standardized over the batch, keeping gradient magnitudes bounded;
+- ``max_grad_norm``: global gradient-norm clipping against destructive updates;
+- ``log_std_min`` / ``log_std_max``: log-std clamped so the policy neither collapses (std -> 0)
+  nor becomes uniform noise (std -> inf);
+- a non-finite guard: an update whose loss or gradients are NaN/inf is skipped and counted
+  (``health/skipped_updates``) instead of poisoning the weights.
+
+``baseline=true`` adds a learned state-value baseline V(s) (advantage G_t - V(s_t)); off by
+default so the default is the plain no-baseline REINFORCE of the study.
+
+Action bounds: the Gaussian sample is *clipped* to the env's bounds when executed, and the
+log-probability in the gradient is that of the unclipped sample (the usual choice, e.g. in
+Stable-Baselines3 and Tianshou). Squashing with tanh would change the density; clipping keeps
+the estimator unbiased for the Gaussian policy that was actually sampled.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+from torch import nn
+from torch.distributions import Normal
+
+from walkers.agents.base import Agent, Transition, resolve_device
+from walkers.buffers import EpisodeBuffer
+from walkers.nn import mlp
+
+
+def returns_to_go(rewards: np.ndarray, gamma: float) -> np.ndarray:
+    """G_t = r_t + gamma * G_{t+1}, computed backwards over one episode."""
+    out = np.zeros_like(rewards, dtype=np.float32)
+    running = 0.0
+    for t in range(len(rewards) - 1, -1, -1):
+        running = rewards[t] + gamma * running
+        out[t] = running
+    return out
+
+
+class GaussianPolicy(nn.Module):
+    def __init__(self, obs_dim, act_dim, hidden_sizes, log_std_init, log_std_min, log_std_max):
+        super().__init__()
+        self.mean = mlp(obs_dim, act_dim, hidden_sizes)
+        self.log_std = nn.Parameter(torch.full((act_dim,), float(log_std_init)))
+        self.log_std_min, self.log_std_max = log_std_min, log_std_max
+
+    def forward(self, obs: torch.Tensor) -> Normal:
+        log_std = self.log_std
+        if self.log_std_min is not None or self.log_std_max is not None:
+            log_std = log_std.clamp(self.log_std_min, self.log_std_max)
+        return Normal(self.mean(obs), log_std.exp())
+
+
+class Reinforce(Agent):
+    def __init__(
+        self,
+        obs_dim: int,
+        action_low: Sequence[float],
+        action_high: Sequence[float],
+        *,
+        lr: float = 1e-3,
+        hidden_sizes: Sequence[int] = (64, 64),
+        gamma: float = 0.99,
+        episodes_per_update: int = 10,
+        normalize_returns: bool = True,
+        max_grad_norm: float | None = 0.5,
+        log_std_init: float = -0.5,
+        log_std_min: float | None = -5.0,
+        log_std_max: float | None = 1.0,
+        baseline: bool = False,
+        baseline_lr: float = 1e-3,
+        entropy_coef: float = 0.0,
+        device: str = "cpu",
+        seed: int = 0,
+    ):
+        self.device = resolve_device(device)
+        self.gamma, self.episodes_per_update = gamma, int(episodes_per_update)
+        self.normalize_returns, self.max_grad_norm = normalize_returns, max_grad_norm
+        self.entropy_coef = entropy_coef
+        self.action_low = np.asarray(action_low, dtype=np.float32)
+        self.action_high = np.asarray(action_high, dtype=np.float32)
+        torch.manual_seed(seed)
+        self.policy = GaussianPolicy(
+            obs_dim, len(self.action_low), hidden_sizes, log_std_init, log_std_min, log_std_max
+        ).to(self.device)
+        self.optimizer = torch.optim.Adam(self.policy.parameters(), lr=lr, fused=True)
+        self.value = self.value_optimizer = None
+        if baseline:
+            self.value = mlp(obs_dim, 1, hidden_sizes).to(self.device)
+            self.value_optimizer = torch.optim.Adam(self.value.parameters(), lr=baseline_lr, fused=True)
+        self.episodes = EpisodeBuffer()
+        self.steps = 0
+        self.skipped_updates = 0
+        self.generator = torch.Generator(device=self.device).manual_seed(seed)
+
+    # --- acting -------------------------------------------------------------------------------
+    def act(self, obs: np.ndarray, explore: bool) -> np.ndarray:
+        with torch.no_grad():
+            dist = self.policy(torch.as_tensor(obs, dtype=torch.float32, device=self.device))
+            if explore:
+                noise = torch.randn(dist.mean.shape, generator=self.generator, device=self.device)
+                action = dist.mean + dist.stddev * noise
+            else:
+                action = dist.mean
+        # The unclipped sample is what the gradient needs; observe() receives the executed
+        # (clipped) action, so keep the sample.
+        self._last_sample = action.cpu().numpy()
+        return np.clip(self._last_sample, self.action_low, self.action_high)
+
+    def observe(self, t: Transition) -> None:
+        self.episodes.add(t.obs, self._last_sample, t.reward, t.episode_over)
+        self.steps += 1
+
+    # --- learning -----------------------------------------------------------------------------
+    def update(self) -> dict[str, torch.Tensor]:
+        if self.episodes.num_episodes < self.episodes_per_update:
+            return {}
+        # Note: a time-limit truncation ends the Monte-Carlo return there (no bootstrap): the
+        # plain REINFORCE estimator has no value function to bootstrap from.
+        episodes = self.episodes.pop_episodes()
+        obs = torch.as_tensor(np.concatenate([e["obs"] for e in episodes]), device=self.device)
+        actions = torch.as_tensor(np.concatenate([e["actions"] for e in episodes]), device=self.device)
+        returns = torch.as_tensor(
+            np.concatenate([returns_to_go(e["rewards"], self.gamma) for e in episodes]),
+            device=self.device,
+        )
+        metrics = {}
+        advantages = returns
+        if self.value is not None:
+            values = self.value(obs).squeeze(-1)
+            value_loss = (values - returns).pow(2).mean()
+            advantages = returns - values.detach()
+            metrics["loss/value"] = value_loss.detach()
+        if self.normalize_returns and len(advantages) > 1:
+            advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
+
+        dist = self.policy(obs)
+        log_prob = dist.log_prob(actions).sum(-1)
+        entropy = dist.entropy().sum(-1).mean()
+        loss = -(log_prob * advantages).mean() - self.entropy_coef * entropy
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        grad_norm = nn.utils.clip_grad_norm_(
+            self.policy.parameters(), self.max_grad_norm or float("inf")
+        )
+        if torch.isfinite(loss) and torch.isfinite(grad_norm):
+            self.optimizer.step()
+        else:  # NaN/inf guard: drop this update rather than poison the weights
+            self.optimizer.zero_grad(set_to_none=True)
+            self.skipped_updates += 1
+        if self.value is not None:
+            self.value_optimizer.zero_grad(set_to_none=True)
+            value_loss.backward()
+            self.value_optimizer.step()
+        metrics.update({
+            "loss/policy": loss.detach(),
+            "train/entropy": entropy.detach(),
+            "train/grad_norm": grad_norm.detach(),
+            "train/log_std_mean": self.policy.log_std.detach().mean(),
+            "health/skipped_updates": torch.tensor(float(self.skipped_updates)),
+        })
+        return metrics
+
+    # --- checkpoints --------------------------------------------------------------------------
+    def state_dict(self, with_buffer: bool = False) -> dict:
+        state = {
+            "policy": self.policy.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "steps": self.steps,
+            "skipped_updates": self.skipped_updates,
+            "generator": self.generator.get_state(),
+        }
+        if self.value is not None:
+            state["value"] = self.value.state_dict()
+            state["value_optimizer"] = self.value_optimizer.state_dict()
+        return state
+
+    def load_state_dict(self, state: dict) -> None:
+        self.policy.load_state_dict(state["policy"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.steps, self.skipped_updates = state["steps"], state["skipped_updates"]
+        self.generator.set_state(state["generator"])
+        if self.value is not None:
+            self.value.load_state_dict(state["value"])
+            self.value_optimizer.load_state_dict(state["value_optimizer"])

@@ -27,7 +27,7 @@ test: $(STAMP)  ## run the test suite (real tiny trainings; a few minutes on 2 c
 	$(PY) -m pytest -q $(ARGS)
 
 lint: $(STAMP)  ## ruff: style and common bugs
-	$(VENV)/bin/ruff check walkers tests benchmarks
+	$(VENV)/bin/ruff check walkers tests $(wildcard benchmarks)
 
 ui: $(STAMP)  ## MLflow UI on the local store: http://127.0.0.1:$(MLFLOW_PORT)
 	$(VENV)/bin/mlflow ui --backend-store-uri sqlite:///mlflow.db --port $(MLFLOW_PORT)

@@ -43,13 +43,20 @@ def store(tmp_path):
     }
 
 
-def run_cli(args: list[str], cwd: Path, timeout: float = 300, **popen) -> subprocess.CompletedProcess:
+def run_cli(
+    args: list[str], cwd: Path, timeout: float = 300, **popen
+) -> subprocess.CompletedProcess:
     """``python -m walkers.train ARGS`` in a subprocess, as a user would run it."""
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     env.pop("MLFLOW_TRACKING_URI", None)
     return subprocess.run(
         [sys.executable, "-m", "walkers.train", *args],
-        cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout, **popen,
+        cwd=cwd,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        **popen,
     )
 
 

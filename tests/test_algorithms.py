@@ -25,19 +25,33 @@ def test_every_algo_completes_a_tiny_run(store, algo, env):
     (run,) = all_runs(store["client"])
     assert run.info.status == "FINISHED"
     assert run.data.tags["algo"] == algo
-    expected = {"eval/return_mean", "eval/return_std", "final/return_mean", "final/return_last10",
-                "final/auc", "final/steps_to_threshold", "perf/sps"}
+    expected = {
+        "eval/return_mean",
+        "eval/return_std",
+        "final/return_mean",
+        "final/return_last10",
+        "final/auc",
+        "final/steps_to_threshold",
+        "perf/sps",
+    }
     assert expected <= set(run.data.metrics)
     if env != "walker2d" or algo != "reinforce":  # short walker episodes: at least one ends
         assert "train/episode_return" in run.data.metrics
 
 
 def test_ddpg_tutorial_variant_layernorm_critic_and_ou_noise(store):
-    cfg = compose_cfg([
-        "algo=ddpg", "env=pendulum", "algo.critic_architecture=layernorm_branch",
-        "algo.critic_hidden_sizes=[64,32,16]", "algo.noise_type=ou", *TINY, *OFF_POLICY_TINY,
-        *store["overrides"],
-    ])
+    cfg = compose_cfg(
+        [
+            "algo=ddpg",
+            "env=pendulum",
+            "algo.critic_architecture=layernorm_branch",
+            "algo.critic_hidden_sizes=[64,32,16]",
+            "algo.noise_type=ou",
+            *TINY,
+            *OFF_POLICY_TINY,
+            *store["overrides"],
+        ]
+    )
     train(cfg)
     (run,) = all_runs(store["client"])
     assert run.info.status == "FINISHED" and run.data.params["algo.noise_type"] == "ou"
@@ -101,7 +115,18 @@ def test_discrete_action_space_is_rejected_before_training(store):
 
 
 def test_any_continuous_gymnasium_id_works_by_override(store):
-    train(compose_cfg(["algo=reinforce", "env=pendulum", "env.id=MountainCarContinuous-v0",
-                       "env.max_episode_steps=100", *TINY, *REINFORCE_TINY, *store["overrides"]]))
+    train(
+        compose_cfg(
+            [
+                "algo=reinforce",
+                "env=pendulum",
+                "env.id=MountainCarContinuous-v0",
+                "env.max_episode_steps=100",
+                *TINY,
+                *REINFORCE_TINY,
+                *store["overrides"],
+            ]
+        )
+    )
     (run,) = all_runs(store["client"])
     assert run.data.tags["env"] == "MountainCarContinuous-v0" and run.info.status == "FINISHED"

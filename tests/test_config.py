@@ -41,7 +41,13 @@ def test_defaults_are_the_td3_reference_setup(monkeypatch):
     assert cfg.tracking.uri == "sqlite:///mlflow.db" and cfg.tracking.experiment == "walkers"
     a = cfg.algo
     assert list(a.hidden_sizes) == [256, 256]
-    assert (a.lr, a.batch_size, a.learning_starts, a.gamma, a.tau) == (3e-4, 256, 25_000, 0.99, 0.005)
+    assert (a.lr, a.batch_size, a.learning_starts, a.gamma, a.tau) == (
+        3e-4,
+        256,
+        25_000,
+        0.99,
+        0.005,
+    )
     assert (a.policy_noise, a.noise_clip, a.policy_delay) == (0.2, 0.5, 2)
     assert (a.exploration_noise, a.buffer_size) == (0.1, 1_000_000)
 

@@ -2,19 +2,59 @@
 
 from __future__ import annotations
 
+import numpy as np
+import pytest
+
 from tests.conftest import all_runs, compose_cfg
 from walkers.train import train
 
 
-def test_td3_learns_pendulum(store):
-    # A random policy scores about -1200 on Pendulum-v1; a swing-up policy about -150.
-    cfg = compose_cfg([
-        "algo=td3", "env=pendulum", "seed=0", "total_steps=12000", "eval_every=2000",
-        "eval_episodes=5", "algo.learning_starts=1000", "checkpoint_every=6000",
-        "progress=false", *store["overrides"],
-    ])
-    train(cfg)
+def learning_run(store, overrides: list[str]) -> dict[str, list[float]]:
+    train(compose_cfg([*overrides, "progress=false", *store["overrides"]]))
     (run,) = all_runs(store["client"])
-    history = [m.value for m in store["client"].get_metric_history(run.info.run_id, "eval/return_mean")]
+    history = {
+        key: [m.value for m in store["client"].get_metric_history(run.info.run_id, key)]
+        for key in ("eval/return_mean", "train/episode_return")
+    }
+    print(history["eval/return_mean"])
+    return history
+
+
+@pytest.mark.parametrize("algo", ["td3", "ddpg"])
+def test_actor_critics_learn_pendulum(store, algo):
+    # A random policy scores about -1200 on Pendulum-v1; a swing-up policy about -150.
+    history = learning_run(
+        store,
+        [
+            f"algo={algo}",
+            "env=pendulum",
+            "seed=0",
+            "total_steps=8000",
+            "eval_every=2000",
+            "eval_episodes=5",
+            "algo.learning_starts=1000",
+            "checkpoint_every=5000",
+        ],
+    )["eval/return_mean"]
     assert history[0] < -900, history  # it started from a poor policy ...
     assert max(history) >= -300, history  # ... and learned to swing up
+
+
+def test_reinforce_learns_inverted_pendulum(store):
+    # Random actions balance the pole for ~6 steps (return ~6); the maximum is 1000.
+    history = learning_run(
+        store,
+        [
+            "algo=reinforce",
+            "env=inverted_pendulum",
+            "seed=0",
+            "total_steps=50000",
+            "eval_every=5000",
+            "eval_episodes=5",
+            "checkpoint_every=25000",
+        ],
+    )
+    train_returns = history["train/episode_return"]
+    first, last = np.mean(train_returns[:20]), np.mean(train_returns[-20:])
+    assert last > 4 * first, (first, last)
+    assert max(history["eval/return_mean"]) >= 100, history["eval/return_mean"]

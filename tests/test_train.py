@@ -10,13 +10,20 @@ from walkers.train import train
 
 TRAIN_METRICS = {"train/episode_return", "train/episode_length", "perf/sps"}
 EVAL_METRICS = {"eval/return_mean", "eval/return_std"}
-FINAL_METRICS = {"final/return_mean", "final/return_last10", "final/auc", "final/steps_to_threshold"}
+FINAL_METRICS = {
+    "final/return_mean",
+    "final/return_last10",
+    "final/auc",
+    "final/steps_to_threshold",
+}
 
 
 @pytest.mark.parametrize(
     "env,budget",
-    [("pendulum", ["algo.learning_starts=200"]),
-     ("walker2d", ["algo.learning_starts=200", "algo.batch_size=32"])],
+    [
+        ("pendulum", ["algo.learning_starts=200"]),
+        ("walker2d", ["algo.learning_starts=200", "algo.batch_size=32"]),
+    ],
 )
 def test_tiny_td3_run_is_fully_logged(store, env, budget):
     cfg = compose_cfg([f"env={env}", "algo=td3", "seed=1", *TINY, *budget, *store["overrides"]])
@@ -38,7 +45,9 @@ def test_tiny_td3_run_is_fully_logged(store, env, budget):
     assert artifacts == {"checkpoints/last.pt", "checkpoints/best.pt"}
     assert "config.yaml" in {a.path for a in client.list_artifacts(run.info.run_id)}
 
-    last = checkpoints.load(client.download_artifacts(run.info.run_id, "checkpoints/last.pt", str(store["path"])))
+    last = checkpoints.load(
+        client.download_artifacts(run.info.run_id, "checkpoints/last.pt", str(store["path"]))
+    )
     assert last["trainer"]["step"] == 600
     assert last["agent"]["steps"] == 600
     assert set(last["agent"]) >= {"actor", "critic", "actor_optimizer", "critic_optimizer", "rng"}
@@ -78,7 +87,9 @@ def test_resume_continues_the_same_run_without_duplicate_steps(store):
     run_id = run.info.run_id
     assert run_id in first.stdout + first.stderr  # the run id is printed at the end
 
-    again = run_cli([f"resume={run_id}", "total_steps=1200", *store["overrides"]], cwd=store["path"])
+    again = run_cli(
+        [f"resume={run_id}", "total_steps=1200", *store["overrides"]], cwd=store["path"]
+    )
     assert again.returncode == 0, again.stderr
     (run,) = all_runs(store["client"])  # still one run: the same one, continued
     assert run.info.status == "FINISHED"

@@ -1,4 +1,4 @@
-"""Experience storage: a preallocated replay buffer (off-policy) and an episode buffer (on-policy)."""
+"""Experience storage: a preallocated replay buffer (off-policy), an episode buffer (on-policy)."""
 
 from __future__ import annotations
 
@@ -56,7 +56,10 @@ class ReplayBuffer:
             0, self.size, (batch_size,), device=self.device, generator=self.generator
         )
         return Batch(
-            self.obs[idx], self.action[idx], self.reward[idx], self.next_obs[idx],
+            self.obs[idx],
+            self.action[idx],
+            self.reward[idx],
+            self.next_obs[idx],
             self.terminated[idx],
         )
 

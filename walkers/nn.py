@@ -44,7 +44,7 @@ class Actor(nn.Module):
 class EnsembleLinear(nn.Module):
     """``n`` independent linear layers applied with one batched matmul.
 
-    Input ``(n, batch, in)`` (or ``(batch, in)``, shared by all members); output ``(n, batch, out)``.
+    Input ``(n, batch, in)``, or ``(batch, in)`` shared by all members; output ``(n, batch, out)``.
     ``members`` selects a subset (TD3's actor loss reads only the first critic). Initialised like
     ``nn.Linear`` member by member.
     """
@@ -71,7 +71,9 @@ class EnsembleLayerNorm(nn.Module):
         self.bias = nn.Parameter(torch.zeros(n, 1, dim))
 
     def forward(self, x: torch.Tensor, members: slice = slice(None)) -> torch.Tensor:
-        return torch.addcmul(self.bias[members], F.layer_norm(x, x.shape[-1:]), self.weight[members])
+        return torch.addcmul(
+            self.bias[members], F.layer_norm(x, x.shape[-1:]), self.weight[members]
+        )
 
 
 class MLPCriticEnsemble(nn.Module):
@@ -83,7 +85,9 @@ class MLPCriticEnsemble(nn.Module):
     def __init__(self, obs_dim: int, act_dim: int, hidden_sizes: Sequence[int], n: int = 2):
         super().__init__()
         dims = [obs_dim + act_dim, *hidden_sizes]
-        self.hidden = nn.ModuleList(EnsembleLinear(n, a, b) for a, b in zip(dims[:-1], dims[1:]))
+        self.hidden = nn.ModuleList(
+            EnsembleLinear(n, a, b) for a, b in zip(dims[:-1], dims[1:], strict=True)
+        )
         self.out = EnsembleLinear(n, dims[-1], 1)
 
     def forward(self, obs, action, members: slice = slice(None)) -> torch.Tensor:
@@ -105,7 +109,7 @@ class BranchCriticEnsemble(nn.Module):
         super().__init__()
         dims = [obs_dim, *hidden_sizes]
         self.state_layers = nn.ModuleList(
-            EnsembleLinear(n, a, b) for a, b in zip(dims[:-1], dims[1:])
+            EnsembleLinear(n, a, b) for a, b in zip(dims[:-1], dims[1:], strict=True)
         )
         self.state_norms = nn.ModuleList(EnsembleLayerNorm(n, b) for b in dims[1:])
         self.action_layer = EnsembleLinear(n, act_dim, dims[-1])
@@ -113,7 +117,7 @@ class BranchCriticEnsemble(nn.Module):
 
     def forward(self, obs, action, members: slice = slice(None)) -> torch.Tensor:
         x = obs
-        for layer, norm in zip(self.state_layers, self.state_norms):
+        for layer, norm in zip(self.state_layers, self.state_norms, strict=True):
             x = F.relu(norm(layer(x, members), members))
         x = F.relu(x + F.relu(self.action_layer(action, members)))
         return self.out(x, members).squeeze(-1)

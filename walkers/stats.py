@@ -17,9 +17,11 @@ def auc(eval_means: Sequence[float]) -> float:
     return float(np.mean(eval_means))
 
 
-def steps_to_threshold(steps: Sequence[int], eval_means: Sequence[float], threshold: float) -> float:
+def steps_to_threshold(
+    steps: Sequence[int], eval_means: Sequence[float], threshold: float
+) -> float:
     """First env step whose eval mean return reaches ``threshold``; ``inf`` if none did."""
-    for step, value in zip(steps, eval_means):
+    for step, value in zip(steps, eval_means, strict=True):
         if value >= threshold:
             return float(step)
     return math.inf

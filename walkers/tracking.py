@@ -60,7 +60,9 @@ def get_or_create_experiment(client: MlflowClient, name: str) -> str:
         return experiment.experiment_id
     try:
         return _with_retries(
-            client.create_experiment, name, artifact_location=_artifact_location(client.tracking_uri)
+            client.create_experiment,
+            name,
+            artifact_location=_artifact_location(client.tracking_uri),
         )
     except MlflowException:
         experiment = client.get_experiment_by_name(name)
@@ -141,7 +143,9 @@ class Tracker:
             try:
                 _with_retries(self.client.log_batch, self.run_id, metrics=chunk)
             except Exception as e:
-                log.warning("MLflow unreachable, %d metrics kept for later: %s", len(self._pending), e)
+                log.warning(
+                    "MLflow unreachable, %d metrics kept for later: %s", len(self._pending), e
+                )
                 return False
             del self._pending[: len(chunk)]
         return True

@@ -32,8 +32,14 @@ log = logging.getLogger("walkers")
 
 #: Keys a resumed run takes from the new command line; everything else comes from its checkpoint.
 RESUME_OVERRIDABLE = (
-    "total_steps", "device", "torch_threads", "progress", "checkpoint_every", "log_every",
-    "save_buffer", "work_dir",
+    "total_steps",
+    "device",
+    "torch_threads",
+    "progress",
+    "checkpoint_every",
+    "log_every",
+    "save_buffer",
+    "work_dir",
 )
 
 
@@ -58,7 +64,11 @@ def build_agent(cfg: DictConfig, spaces: dict) -> Agent:
 def git_commit() -> str:
     try:
         out = subprocess.run(
-            ["git", "rev-parse", "HEAD"], cwd=PROJECT_ROOT, capture_output=True, text=True, timeout=5
+            ["git", "rev-parse", "HEAD"],
+            cwd=PROJECT_ROOT,
+            capture_output=True,
+            text=True,
+            timeout=5,
         )
         return out.stdout.strip() if out.returncode == 0 else "unknown"
     except (OSError, subprocess.SubprocessError):
@@ -83,7 +93,9 @@ def _load_resume_checkpoint(client, cfg: DictConfig, overrides) -> tuple[DictCon
     try:
         path = Path(client.download_artifacts(run_id, "checkpoints/last.pt", str(dst)))
     except Exception:
-        raise CheckpointError(f"run {run_id} has no checkpoints/last.pt artifact to resume from") from None
+        raise CheckpointError(
+            f"run {run_id} has no checkpoints/last.pt artifact to resume from"
+        ) from None
     state = checkpoints.load(path)
     stored = OmegaConf.create(state["config"])
     given = _override_keys(overrides)
@@ -117,8 +129,13 @@ def train(cfg: DictConfig, overrides: list[str] | tuple = ()) -> float:
             client,
             cfg.tracking.experiment,
             run_name=cfg.tracking.run_name or f"{algo}-{env_id}-s{cfg.seed}",
-            tags={"algo": algo, "env": env_id, "seed": str(cfg.seed),
-                  "git_commit": git_commit(), "mlflow.source.git.commit": git_commit()},
+            tags={
+                "algo": algo,
+                "env": env_id,
+                "seed": str(cfg.seed),
+                "git_commit": git_commit(),
+                "mlflow.source.git.commit": git_commit(),
+            },
             spool_dir=Path(cfg.work_dir) / "spool",
         )
         tracker.log_params(tracking.flatten(OmegaConf.to_container(cfg, resolve=True)))
@@ -132,12 +149,20 @@ def train(cfg: DictConfig, overrides: list[str] | tuple = ()) -> float:
     tracker.log_artifact(config_yaml)
 
     trainer = Trainer(
-        agent, env, eval_env, tracker,
+        agent,
+        env,
+        eval_env,
+        tracker,
         TrainerSettings(
-            total_steps=cfg.total_steps, eval_every=cfg.eval_every,
-            eval_episodes=cfg.eval_episodes, checkpoint_every=cfg.checkpoint_every,
-            log_every=cfg.log_every, seed=cfg.seed, threshold=cfg.env.threshold,
-            save_buffer=cfg.save_buffer, progress=cfg.progress,
+            total_steps=cfg.total_steps,
+            eval_every=cfg.eval_every,
+            eval_episodes=cfg.eval_episodes,
+            checkpoint_every=cfg.checkpoint_every,
+            log_every=cfg.log_every,
+            seed=cfg.seed,
+            threshold=cfg.env.threshold,
+            save_buffer=cfg.save_buffer,
+            progress=cfg.progress,
         ),
         checkpoint_dir=run_dir / "checkpoints",
         checkpoint_extra={"config": OmegaConf.to_container(cfg, resolve=True)},

@@ -122,8 +122,12 @@ class Trainer:
         # by the episode count (an interrupted episode cannot be continued).
         obs, _ = env.reset(seed=s.seed + p.episodes)
         bar = tqdm(
-            total=s.total_steps, initial=p.step, unit="step", disable=not s.progress,
-            dynamic_ncols=True, mininterval=1.0,
+            total=s.total_steps,
+            initial=p.step,
+            unit="step",
+            disable=not s.progress,
+            dynamic_ncols=True,
+            mininterval=1.0,
         )
         start_step, start_time = p.step, time.perf_counter()
         log_step, log_time = p.step, start_time
@@ -132,7 +136,9 @@ class Trainer:
             while p.step < s.total_steps:
                 action = agent.act(obs, explore=True)
                 next_obs, reward, terminated, truncated, info = env.step(action)
-                agent.observe(Transition(obs, action, float(reward), next_obs, terminated, truncated))
+                agent.observe(
+                    Transition(obs, action, float(reward), next_obs, terminated, truncated)
+                )
                 losses.update(agent.update())
                 p.step += 1
                 obs = next_obs
@@ -140,7 +146,10 @@ class Trainer:
                     p.episodes += 1
                     episode = info["episode"]  # true return, recorded before any reward shaping
                     tracker.log_metrics(
-                        {"train/episode_return": episode["r"], "train/episode_length": episode["l"]},
+                        {
+                            "train/episode_return": episode["r"],
+                            "train/episode_length": episode["l"],
+                        },
                         p.step,
                     )
                     obs, _ = env.reset()

@@ -66,7 +66,11 @@ RULES: list[tuple[str, callable, str]] = [
     ("log_every", positive_int, "an integer > 0"),
     ("torch_threads", lambda v: v is None or positive_int(v), "null or an integer > 0"),
     ("device", lambda v: v in DEVICES, "one of " + ", ".join(DEVICES)),
-    ("optimized_metric", lambda v: v in OPTIMIZABLE_METRICS, "one of " + ", ".join(OPTIMIZABLE_METRICS)),
+    (
+        "optimized_metric",
+        lambda v: v in OPTIMIZABLE_METRICS,
+        "one of " + ", ".join(OPTIMIZABLE_METRICS),
+    ),
     ("algo.lr", positive, "a number > 0"),
     ("algo.actor_lr", positive_or_null, "null or a number > 0"),
     ("algo.critic_lr", positive_or_null, "null or a number > 0"),
@@ -74,7 +78,11 @@ RULES: list[tuple[str, callable, str]] = [
     ("algo.buffer_size", positive_int, "an integer > 0"),
     ("algo.learning_starts", non_negative_int, "an integer >= 0"),
     ("algo.hidden_sizes", layer_sizes, "a non-empty list of integers > 0, e.g. [256,256]"),
-    ("algo.critic_hidden_sizes", lambda v: v is None or layer_sizes(v), "null or a list of integers > 0"),
+    (
+        "algo.critic_hidden_sizes",
+        lambda v: v is None or layer_sizes(v),
+        "null or a list of integers > 0",
+    ),
     ("algo.gamma", unit_interval, "a number in (0, 1]"),
     ("algo.tau", unit_interval, "a number in (0, 1]"),
     ("algo.policy_delay", positive_int, "an integer > 0"),
@@ -102,14 +110,26 @@ def validate(cfg: DictConfig) -> None:
         if OmegaConf.is_config(value):
             value = OmegaConf.to_container(value, resolve=True)
         check(key, value, predicate(value), allowed)
-    check("eval_every", cfg.eval_every, cfg.eval_every <= cfg.total_steps,
-          f"at most total_steps ({cfg.total_steps})")
+    check(
+        "eval_every",
+        cfg.eval_every,
+        cfg.eval_every <= cfg.total_steps,
+        f"at most total_steps ({cfg.total_steps})",
+    )
     algo = cfg.algo
     if "batch_size" in algo and "buffer_size" in algo:
-        check("algo.batch_size", algo.batch_size, algo.batch_size <= algo.buffer_size,
-              f"at most algo.buffer_size ({algo.buffer_size})")
+        check(
+            "algo.batch_size",
+            algo.batch_size,
+            algo.batch_size <= algo.buffer_size,
+            f"at most algo.buffer_size ({algo.buffer_size})",
+        )
     if cfg.device == "cuda":
         import torch
 
-        check("device", "cuda", torch.cuda.is_available(),
-              "auto or cpu on this machine (torch sees no CUDA device)")
+        check(
+            "device",
+            "cuda",
+            torch.cuda.is_available(),
+            "auto or cpu on this machine (torch sees no CUDA device)",
+        )

@@ -101,7 +101,11 @@ class ActorCritic(Agent):
         self.device = resolve_device(device)
         self.batch_size, self.learning_starts = int(batch_size), int(learning_starts)
         self.gamma, self.tau = gamma, tau
-        self.policy_noise, self.noise_clip, self.policy_delay = policy_noise, noise_clip, policy_delay
+        self.policy_noise, self.noise_clip, self.policy_delay = (
+            policy_noise,
+            noise_clip,
+            policy_delay,
+        )
 
         self.action_low = np.asarray(action_low, dtype=np.float32)
         self.action_high = np.asarray(action_high, dtype=np.float32)

@@ -42,7 +42,7 @@ class Agent(ABC):
 
     @abstractmethod
     def act(self, obs: np.ndarray, explore: bool) -> np.ndarray:
-        """Action for one observation, in the env's units; ``explore=False`` is the greedy policy."""
+        """Action for one observation in the env's units; ``explore=False``: the greedy policy."""
 
     @abstractmethod
     def observe(self, transition: Transition) -> None:

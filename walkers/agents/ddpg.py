@@ -1,4 +1,4 @@
-"""DDPG (Lillicrap et al. 2016) as the TD3 paper's "our DDPG", plus the tutorial's critic variant."""
+"""DDPG (Lillicrap et al. 2016) as the TD3 paper's "our DDPG", plus the tutorial's variants."""
 
 from __future__ import annotations
 
@@ -37,11 +37,26 @@ class DDPG(ActorCritic):
         seed=0,
     ):
         super().__init__(
-            obs_dim, action_low, action_high,
-            lr=lr, actor_lr=actor_lr, critic_lr=critic_lr, batch_size=batch_size,
-            learning_starts=learning_starts, hidden_sizes=hidden_sizes,
-            critic_architecture=critic_architecture, critic_hidden_sizes=critic_hidden_sizes,
-            gamma=gamma, tau=tau, num_critics=1, policy_noise=0.0, noise_clip=0.0,
-            policy_delay=1, exploration_noise=exploration_noise, noise_type=noise_type,
-            buffer_size=buffer_size, device=device, seed=seed,
+            obs_dim,
+            action_low,
+            action_high,
+            lr=lr,
+            actor_lr=actor_lr,
+            critic_lr=critic_lr,
+            batch_size=batch_size,
+            learning_starts=learning_starts,
+            hidden_sizes=hidden_sizes,
+            critic_architecture=critic_architecture,
+            critic_hidden_sizes=critic_hidden_sizes,
+            gamma=gamma,
+            tau=tau,
+            num_critics=1,
+            policy_noise=0.0,
+            noise_clip=0.0,
+            policy_delay=1,
+            exploration_noise=exploration_noise,
+            noise_type=noise_type,
+            buffer_size=buffer_size,
+            device=device,
+            seed=seed,
         )

@@ -97,7 +97,9 @@ class Reinforce(Agent):
         self.value = self.value_optimizer = None
         if baseline:
             self.value = mlp(obs_dim, 1, hidden_sizes).to(self.device)
-            self.value_optimizer = torch.optim.Adam(self.value.parameters(), lr=baseline_lr, fused=True)
+            self.value_optimizer = torch.optim.Adam(
+                self.value.parameters(), lr=baseline_lr, fused=True
+            )
         self.episodes = EpisodeBuffer()
         self.steps = 0
         self.skipped_updates = 0
@@ -129,7 +131,9 @@ class Reinforce(Agent):
         # plain REINFORCE estimator has no value function to bootstrap from.
         episodes = self.episodes.pop_episodes()
         obs = torch.as_tensor(np.concatenate([e["obs"] for e in episodes]), device=self.device)
-        actions = torch.as_tensor(np.concatenate([e["actions"] for e in episodes]), device=self.device)
+        actions = torch.as_tensor(
+            np.concatenate([e["actions"] for e in episodes]), device=self.device
+        )
         returns = torch.as_tensor(
             np.concatenate([returns_to_go(e["rewards"], self.gamma) for e in episodes]),
             device=self.device,
@@ -162,13 +166,15 @@ class Reinforce(Agent):
             self.value_optimizer.zero_grad(set_to_none=True)
             value_loss.backward()
             self.value_optimizer.step()
-        metrics.update({
-            "loss/policy": loss.detach(),
-            "train/entropy": entropy.detach(),
-            "train/grad_norm": grad_norm.detach(),
-            "train/log_std_mean": self.policy.log_std.detach().mean(),
-            "health/skipped_updates": torch.tensor(float(self.skipped_updates)),
-        })
+        metrics.update(
+            {
+                "loss/policy": loss.detach(),
+                "train/entropy": entropy.detach(),
+                "train/grad_norm": grad_norm.detach(),
+                "train/log_std_mean": self.policy.log_std.detach().mean(),
+                "health/skipped_updates": torch.tensor(float(self.skipped_updates)),
+            }
+        )
         return metrics
 
     # --- checkpoints --------------------------------------------------------------------------

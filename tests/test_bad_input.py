@@ -22,6 +22,8 @@ CASES = [
     (["optimized_metric=loss"], ["optimized_metric='loss'", "final/return_last10"]),
     (["env.id=NoSuchEnv-v0"], ["env.id='NoSuchEnv-v0'", "Gymnasium"]),
     (["env.id=CartPole-v1"], ["env.id='CartPole-v1'", "Discrete", "continuous"]),
+    (["algo=ddpg", "algo.noise_type=pink"], ["algo.noise_type='pink'", "gaussian", "ou"]),
+    (["algo=td3", "+algo.momentum=0.9"], ["algo", "momentum"]),
     (["resume=0123456789abcdef"], ["resume='0123456789abcdef'", "not a run"]),
     (["tracking.uri=nosuchscheme://x"], ["tracking.uri='nosuchscheme://x'", "sqlite"]),
 ]
@@ -40,7 +42,7 @@ def test_bad_value_is_rejected_before_any_run(store, overrides, expected):
         assert all_runs(store["client"]) == []
 
 
-@pytest.mark.parametrize("case", [0, 10, 12], ids=lambda i: " ".join(CASES[i][0]))
+@pytest.mark.parametrize("case", [0, 10, 14], ids=lambda i: " ".join(CASES[i][0]))
 def test_cli_prints_one_line_and_exits_2(store, case):
     overrides, expected = CASES[case]
     result = run_cli(["env=pendulum", *TINY, *store["overrides"], *overrides], cwd=store["path"])

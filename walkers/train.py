@@ -19,6 +19,7 @@ from pathlib import Path
 import hydra
 import torch
 from hydra.core.hydra_config import HydraConfig
+from hydra.errors import InstantiationException
 from omegaconf import DictConfig, OmegaConf
 
 from walkers import PROJECT_ROOT, checkpoints, tracking
@@ -51,14 +52,20 @@ def build_agent(cfg: DictConfig, spaces: dict) -> Agent:
     """Instantiate ``cfg.algo`` (its ``_target_`` class) for an env with ``spaces``."""
     kwargs = OmegaConf.to_container(cfg.algo, resolve=True)
     kwargs.pop("name", None)
-    return hydra.utils.instantiate(
-        kwargs,
-        **spaces,
-        device=str(resolve_device(cfg.device)),
-        seed=cfg.seed,
-        _convert_="all",
-        _execution_whitelist_=AGENT_TARGETS,
-    )
+    try:
+        return hydra.utils.instantiate(
+            kwargs,
+            **spaces,
+            device=str(resolve_device(cfg.device)),
+            seed=cfg.seed,
+            _convert_="all",
+            _execution_whitelist_=AGENT_TARGETS,
+        )
+    except (InstantiationException, ValueError, TypeError) as e:
+        cause = e.__cause__ if isinstance(e, InstantiationException) else e
+        if isinstance(cause, ValueError | TypeError):  # a bad or unknown hyperparameter
+            raise ConfigError(f"algo.{cause}" if "=" in str(cause) else f"algo: {cause}") from None
+        raise
 
 
 def git_commit() -> str:
@@ -118,75 +125,88 @@ def train(cfg: DictConfig, overrides: list[str] | tuple = ()) -> float:
         validate(cfg)
     if cfg.torch_threads:
         torch.set_num_threads(cfg.torch_threads)
-
     env = make_env(cfg.env)
     eval_env = make_env(cfg.env, shaping=False)
-    agent = build_agent(cfg, env_spaces(env))
+    try:
+        agent = build_agent(cfg, env_spaces(env))
+        tracker = _open_run(client, cfg)
+        # From here on the run exists in MLflow: every exit path below sets its final status.
+        status = tracking.FAILED
+        try:
+            summary = _train_in_run(cfg, tracker, agent, env, eval_env, resume_state)
+            status = tracking.FINISHED
+        except KeyboardInterrupt:
+            status = tracking.KILLED
+            raise
+        finally:
+            tracker.end(status)
+            log.info("MLflow run %s ended %s", tracker.run_id, status)
+            log.info("open it: `make ui`, then %s", tracker.url)
+    finally:
+        env.close()
+        eval_env.close()
+    value = summary.get(cfg.optimized_metric, float("nan"))
+    log.info("%s = %s", cfg.optimized_metric, value)
+    return value
 
-    algo, env_id = cfg.algo.name, cfg.env.id
-    if resume_state is None:
-        tracker = tracking.Tracker.start(
-            client,
-            cfg.tracking.experiment,
-            run_name=cfg.tracking.run_name or f"{algo}-{env_id}-s{cfg.seed}",
-            tags={
-                "algo": algo,
-                "env": env_id,
-                "seed": str(cfg.seed),
-                "git_commit": git_commit(),
-                "mlflow.source.git.commit": git_commit(),
-            },
-            spool_dir=Path(cfg.work_dir) / "spool",
-        )
+
+def _open_run(client, cfg: DictConfig) -> tracking.Tracker:
+    """Reopen the resumed run, or create a new one with the config as params and tags."""
+    spool = Path(cfg.work_dir) / "spool"
+    if cfg.resume:
+        return tracking.Tracker.reopen(client, cfg.resume, spool)
+    algo, env_id, commit = cfg.algo.name, cfg.env.id, git_commit()
+    tracker = tracking.Tracker.start(
+        client,
+        cfg.tracking.experiment,
+        run_name=cfg.tracking.run_name or f"{algo}-{env_id}-s{cfg.seed}",
+        tags={
+            "algo": algo,
+            "env": env_id,
+            "seed": str(cfg.seed),
+            "git_commit": commit,
+            "mlflow.source.git.commit": commit,
+        },
+        spool_dir=spool,
+    )
+    try:
         tracker.log_params(tracking.flatten(OmegaConf.to_container(cfg, resolve=True)))
-    else:
-        tracker = tracking.Tracker.reopen(client, cfg.resume, Path(cfg.work_dir) / "spool")
+    except BaseException:
+        tracker.end(tracking.FAILED)
+        raise
+    return tracker
 
+
+def _train_in_run(cfg, tracker, agent, env, eval_env, resume_state) -> dict[str, float]:
     run_dir = Path(cfg.work_dir) / "runs" / tracker.run_id
     config_yaml = run_dir / "config.yaml"
     config_yaml.parent.mkdir(parents=True, exist_ok=True)
     config_yaml.write_text(OmegaConf.to_yaml(cfg, resolve=True))
     tracker.log_artifact(config_yaml)
-
+    settings = TrainerSettings(
+        total_steps=cfg.total_steps,
+        eval_every=cfg.eval_every,
+        eval_episodes=cfg.eval_episodes,
+        checkpoint_every=cfg.checkpoint_every,
+        log_every=cfg.log_every,
+        seed=cfg.seed,
+        threshold=cfg.env.threshold,
+        save_buffer=cfg.save_buffer,
+        progress=cfg.progress,
+    )
     trainer = Trainer(
         agent,
         env,
         eval_env,
         tracker,
-        TrainerSettings(
-            total_steps=cfg.total_steps,
-            eval_every=cfg.eval_every,
-            eval_episodes=cfg.eval_episodes,
-            checkpoint_every=cfg.checkpoint_every,
-            log_every=cfg.log_every,
-            seed=cfg.seed,
-            threshold=cfg.env.threshold,
-            save_buffer=cfg.save_buffer,
-            progress=cfg.progress,
-        ),
+        settings,
         checkpoint_dir=run_dir / "checkpoints",
         checkpoint_extra={"config": OmegaConf.to_container(cfg, resolve=True)},
     )
     if resume_state is not None:
         trainer.restore(resume_state)
         log.info("resuming run %s at step %d", tracker.run_id, trainer.progress.step)
-
-    status = tracking.FAILED
-    try:
-        summary = trainer.run()
-        status = tracking.FINISHED
-    except KeyboardInterrupt:
-        status = tracking.KILLED
-        raise
-    finally:
-        tracker.end(status)
-        env.close()
-        eval_env.close()
-        log.info("MLflow run %s ended %s", tracker.run_id, status)
-        log.info("open it: `make ui`, then %s", tracker.url)
-    value = summary.get(cfg.optimized_metric, float("nan"))
-    log.info("%s = %s", cfg.optimized_metric, value)
-    return value
+    return trainer.run()
 
 
 def _raise_keyboard_interrupt(signum, frame):

@@ -70,24 +70,26 @@ NOISE_TYPES = {"gaussian": GaussianNoise, "ou": OrnsteinUhlenbeckNoise}
 
 
 class ActorCritic(Agent):
+    """The shared core; defaults are TD3's reference hyperparameters (see conf/algo/td3.yaml)."""
+
     def __init__(
         self,
         obs_dim: int,
         action_low: Sequence[float],
         action_high: Sequence[float],
         *,
-        lr: float,
-        batch_size: int,
-        learning_starts: int,
-        hidden_sizes: Sequence[int],
-        gamma: float,
-        tau: float,
-        num_critics: int,
-        policy_noise: float,
-        noise_clip: float,
-        policy_delay: int,
-        exploration_noise: float,
-        buffer_size: int,
+        lr: float = 3e-4,
+        batch_size: int = 256,
+        learning_starts: int = 25_000,
+        hidden_sizes: Sequence[int] = (256, 256),
+        gamma: float = 0.99,
+        tau: float = 0.005,
+        num_critics: int = 2,
+        policy_noise: float = 0.2,
+        noise_clip: float = 0.5,
+        policy_delay: int = 2,
+        exploration_noise: float = 0.1,
+        buffer_size: int = 1_000_000,
         actor_lr: float | None = None,
         critic_lr: float | None = None,
         critic_architecture: str = "mlp",

@@ -26,6 +26,9 @@ train: $(STAMP)  ## the main job: TD3 on Walker2d-v5, 1M steps, logged to ./mlfl
 test: $(STAMP)  ## run the test suite (real tiny trainings; a few minutes on 2 cores)
 	$(PY) -m pytest -q $(ARGS)
 
+bench: $(STAMP)  ## benchmarks: the TD3 update vs a plain eager implementation, side by side
+	$(PY) benchmarks/bench_update.py $(ARGS)
+
 lint: $(STAMP)  ## ruff: style and common bugs
 	$(VENV)/bin/ruff check walkers tests $(wildcard benchmarks)
 
@@ -36,4 +39,4 @@ clean:  ## remove run outputs (mlflow.db, mlartifacts/, outputs/, multirun/, .wa
 	rm -rf mlflow.db mlruns mlartifacts outputs multirun .walkers reports .pytest_cache .ruff_cache
 	find . -name __pycache__ -type d -prune -not -path './$(VENV)/*' -exec rm -rf {} +
 
-.PHONY: help install train test lint ui clean
+.PHONY: help install train test bench lint ui clean

@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -58,6 +59,30 @@ def run_cli(
         timeout=timeout,
         **popen,
     )
+
+
+def spawn_cli(args: list[str], cwd: Path) -> subprocess.Popen:
+    """Start ``python -m walkers.train ARGS`` in the background (to signal or kill it)."""
+    env = {k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"}
+    return subprocess.Popen(
+        [sys.executable, "-m", "walkers.train", *args],
+        cwd=cwd,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
+def wait_for_uploaded_checkpoint(
+    proc: subprocess.Popen, store_path: Path, name: str, timeout: float = 120
+) -> None:
+    """Block until the run has uploaded ``checkpoints/<name>`` to the store's artifacts."""
+    deadline = time.monotonic() + timeout
+    while not list((store_path / "mlartifacts").rglob(name)):
+        assert proc.poll() is None, proc.communicate()[1][-2000:]
+        assert time.monotonic() < deadline, f"no {name} within {timeout} s"
+        time.sleep(0.2)
 
 
 def all_runs(client: MlflowClient) -> list:

@@ -2,16 +2,12 @@
 
 from __future__ import annotations
 
-import os
 import signal
-import subprocess
-import sys
-import time
 
 import pytest
 import torch
 
-from tests.conftest import all_runs, run_cli
+from tests.conftest import all_runs, run_cli, spawn_cli, wait_for_uploaded_checkpoint
 from walkers import checkpoints
 from walkers.errors import CheckpointError
 
@@ -49,19 +45,9 @@ def test_kill_9_then_resume_finishes_at_the_right_step(store):
         "progress=false",
         *store["overrides"],
     ]
-    env = {k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"}
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "walkers.train", *args],
-        cwd=store["path"],
-        env=env,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-    )
+    proc = spawn_cli(args, cwd=store["path"])
     try:
-        deadline = time.monotonic() + 120
-        while not list((store["path"] / "mlartifacts").rglob("last.pt")):  # uploaded to the run
-            assert time.monotonic() < deadline and proc.poll() is None, "no checkpoint was written"
-            time.sleep(0.2)
+        wait_for_uploaded_checkpoint(proc, store["path"], "last.pt")
         proc.send_signal(signal.SIGKILL)  # no chance to clean up
         proc.wait(timeout=30)
     finally:

@@ -2,13 +2,9 @@
 
 from __future__ import annotations
 
-import os
 import signal
-import subprocess
-import sys
-import time
 
-from tests.conftest import all_runs, run_cli
+from tests.conftest import all_runs, run_cli, spawn_cli, wait_for_uploaded_checkpoint
 from walkers import checkpoints
 
 
@@ -23,23 +19,9 @@ def test_sigterm_saves_a_checkpoint_and_ends_killed(store):
         "progress=false",
         *store["overrides"],
     ]
-    env = {k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"}
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "walkers.train", *args],
-        cwd=store["path"],
-        env=env,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+    proc = spawn_cli(args, cwd=store["path"])
     try:
-        deadline = time.monotonic() + 120
-        while time.monotonic() < deadline:  # wait until it is training (a best.pt exists)
-            if list((store["path"] / "work" / "runs").glob("*/checkpoints/best.pt")):
-                break
-            time.sleep(0.5)
-        else:
-            raise AssertionError("training never started")
+        wait_for_uploaded_checkpoint(proc, store["path"], "best.pt")  # it is training
         proc.send_signal(signal.SIGTERM)
         _, stderr = proc.communicate(timeout=60)
     finally:

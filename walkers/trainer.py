@@ -162,7 +162,7 @@ class Trainer:
                     )
                 if p.step % s.eval_every == 0 or p.step == s.total_steps:
                     bar.set_postfix(eval_return=f"{self.evaluate():.1f}", refresh=False)
-                if p.step % s.checkpoint_every == 0:
+                if p.step % s.checkpoint_every == 0 and p.step < s.total_steps:  # end: below
                     self._checkpoint_and_flush()
                 if p.step % 100 == 0:
                     bar.update(p.step - bar.n)

@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import pytest
+from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from tests.conftest import compose_cfg, run_cli
+from tests.conftest import CONF_DIR, compose_cfg, run_cli
 from walkers import PROJECT_ROOT
+from walkers.trial import make_pruner
 from walkers.validate import validate
 
 GROUPS = {
@@ -72,3 +74,29 @@ def test_cli_help_and_cfg_job(tmp_path):
 def test_experiment_presets_compose(experiment):
     cfg = compose_cfg([f"experiment={experiment}"])
     validate(cfg)
+
+
+def test_presets_override_the_train_defaults():
+    assert compose_cfg(["experiment=ab_pendulum"]).total_steps == 10_000
+    assert compose_cfg(["sweeps=td3_walker2d"]).total_steps == 300_000
+
+
+SWEEPS = sorted(p.stem for p in (PROJECT_ROOT / "sweeps").glob("*.yaml"))
+
+
+@pytest.mark.parametrize("sweep", SWEEPS)
+def test_sweep_files_compose_with_a_pruner_and_a_search_space(sweep):
+    with initialize_config_dir(config_dir=CONF_DIR):
+        cfg = compose("train", overrides=[f"sweeps={sweep}"], return_hydra_config=True)
+    validate(cfg)
+    assert cfg.hydra.sweeper._target_ == "walkers.sweeper.PruningOptunaSweeper"
+    assert cfg.hydra.sweeper.study_name == sweep and cfg.hydra.sweeper.params
+    assert make_pruner(cfg.sweep.pruner) is not None
+    absent = object()
+    for key in cfg.hydra.sweeper.params:  # every searched key exists in the job config
+        assert OmegaConf.select(cfg, key, default=absent) is not absent, key
+
+
+def test_short_envs_shorten_the_off_policy_warm_up():
+    assert compose_cfg(["env=pendulum"]).algo.learning_starts == 1000
+    assert compose_cfg(["env=walker2d", "algo=ddpg"]).algo.learning_starts == 25_000

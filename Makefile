@@ -23,6 +23,13 @@ install: $(STAMP)  ## create .venv and install walkers with pinned dependencies
 train: $(STAMP)  ## the main job: TD3 on Walker2d-v5, 1M steps, logged to ./mlflow.db (extra overrides: ARGS="seed=3 ...")
 	$(PY) -m walkers.train $(ARGS)
 
+ab: $(STAMP)  ## a small A/B end to end in minutes: REINFORCE vs DDPG vs TD3 on Pendulum, 3 seeds, then a report
+	$(PY) -m walkers.train -m experiment=ab_pendulum hydra/launcher=joblib $(ARGS)
+	$(PY) -m walkers.compare env=pendulum algos=[reinforce,ddpg,td3] tracking.experiment=ab_pendulum
+
+compare: $(STAMP)  ## A/B report from finished runs (ARGS="env=walker2d algos=[reinforce,td3] tracking.experiment=...")
+	$(PY) -m walkers.compare $(ARGS)
+
 test: $(STAMP)  ## run the test suite (real tiny trainings; a few minutes on 2 cores)
 	$(PY) -m pytest -q $(ARGS)
 
@@ -39,4 +46,4 @@ clean:  ## remove run outputs (mlflow.db, mlartifacts/, outputs/, multirun/, .wa
 	rm -rf mlflow.db mlruns mlartifacts outputs multirun .walkers reports .pytest_cache .ruff_cache
 	find . -name __pycache__ -type d -prune -not -path './$(VENV)/*' -exec rm -rf {} +
 
-.PHONY: help install train test bench lint ui clean
+.PHONY: help install train ab compare test bench lint ui clean

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -27,31 +28,49 @@ TINY = [
 ]
 
 
-def compose_cfg(overrides: list[str]):
+def compose_cfg(overrides: list[str], config_name: str = "train"):
+    """The real config of an entrypoint (``train``, ``evaluate``, ``compare``) with overrides."""
     with initialize_config_dir(config_dir=CONF_DIR):
-        return compose(config_name="train", overrides=overrides)
+        return compose(config_name=config_name, overrides=overrides)
 
 
-@pytest.fixture
-def store(tmp_path):
-    """A fresh sqlite MLflow store and scratch dir: overrides pointing a run at them."""
-    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+@pytest.fixture(scope="session")
+def _empty_store_file(tmp_path_factory) -> Path:
+    """An MLflow sqlite file with its schema created (MLflow takes ~1.5 s to migrate a new one)."""
+    path = tmp_path_factory.mktemp("template") / "mlflow.db"
+    MlflowClient(f"sqlite:///{path}").search_experiments()
+    return path
+
+
+def new_store(path: Path, template: Path | None = None) -> dict:
+    """A fresh sqlite MLflow store and scratch dir in ``path``: overrides pointing runs there.
+
+    ``template``: an empty store file to copy instead of letting MLflow create the schema.
+    """
+    if template is not None:
+        shutil.copyfile(template, path / "mlflow.db")
+    uri = f"sqlite:///{path / 'mlflow.db'}"
     return {
         "uri": uri,
         "client": MlflowClient(uri),
-        "overrides": [f"tracking.uri={uri}", f"work_dir={tmp_path / 'work'}"],
-        "path": tmp_path,
+        "overrides": [f"tracking.uri={uri}", f"work_dir={path / 'work'}"],
+        "path": path,
     }
 
 
+@pytest.fixture
+def store(tmp_path, _empty_store_file):
+    return new_store(tmp_path, _empty_store_file)
+
+
 def run_cli(
-    args: list[str], cwd: Path, timeout: float = 300, **popen
+    args: list[str], cwd: Path, timeout: float = 300, module: str = "walkers.train", **popen
 ) -> subprocess.CompletedProcess:
-    """``python -m walkers.train ARGS`` in a subprocess, as a user would run it."""
+    """``python -m MODULE ARGS`` (default: walkers.train) in a subprocess, as a user would."""
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     env.pop("MLFLOW_TRACKING_URI", None)
     return subprocess.run(
-        [sys.executable, "-m", "walkers.train", *args],
+        [sys.executable, "-m", module, *args],
         cwd=cwd,
         env=env,
         capture_output=True,
@@ -88,6 +107,14 @@ def wait_for_uploaded_checkpoint(
 def all_runs(client: MlflowClient) -> list:
     """Every run in every experiment of a store (empty for a store never written to)."""
     return client.search_runs([e.experiment_id for e in client.search_experiments()])
+
+
+def one_line_error(result: subprocess.CompletedProcess) -> str:
+    """The single ``error: ...`` line of a command that must fail with exit 2 and no traceback."""
+    assert result.returncode == 2, result.stderr[-2000:]
+    lines = [line for line in result.stderr.splitlines() if line.startswith("error:")]
+    assert len(lines) == 1 and "Traceback" not in result.stderr, result.stderr[-2000:]
+    return lines[0]
 
 
 def metric_steps(client: MlflowClient, run_id: str, key: str) -> list[int]:

@@ -16,19 +16,21 @@ def run_episodes(
     episodes: int,
     seed: int,
     on_frame: Callable[[int, np.ndarray], None] | None = None,
+    render_episodes: int | None = None,
 ) -> np.ndarray:
     """Returns of ``episodes`` greedy episodes; episode ``i`` starts from ``reset(seed=seed + i)``.
 
     Seeding every episode makes evaluations comparable across checkpoints and runs (the same
-    start states each time). ``on_frame(episode, frame)`` receives rendered frames when the env
-    has a render mode.
+    start states each time). ``on_frame(episode, frame)`` receives the rendered frames of the
+    first ``render_episodes`` episodes (all when None); the env needs ``render_mode="rgb_array"``.
     """
     returns = np.zeros(episodes)
     for i in range(episodes):
         obs, _ = env.reset(seed=seed + i)
+        render = on_frame is not None and (render_episodes is None or i < render_episodes)
         done = False
         while not done:
-            if on_frame is not None:
+            if render:
                 on_frame(i, env.render())
             obs, reward, terminated, truncated, _ = env.step(agent.act(obs, explore=False))
             returns[i] += reward

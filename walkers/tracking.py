@@ -84,6 +84,36 @@ def connect(uri: str) -> MlflowClient:
     return client
 
 
+def require_run(client: MlflowClient, run_id: str, uri: str, key: str = "run_id"):
+    """The run ``run_id``; a :class:`ConfigError` naming ``key`` and the store if there is none."""
+    try:
+        return client.get_run(run_id)
+    except Exception:
+        raise ConfigError(
+            f"{key}={run_id!r} is not a run in tracking.uri={uri!r}; pass the run id shown at "
+            "the end of a training run or in the MLflow UI"
+        ) from None
+
+
+def search_runs(client: MlflowClient, experiment_id: str, filter_string: str = "") -> list:
+    """Every run of an experiment matching ``filter_string`` (all pages)."""
+    runs, token = [], None
+    while True:
+        page = client.search_runs(
+            [experiment_id], filter_string, max_results=5000, page_token=token
+        )
+        runs.extend(page)
+        token = page.token
+        if not token:
+            return runs
+
+
+def metric_history(client: MlflowClient, run_id: str, key: str) -> tuple[list[int], list[float]]:
+    """``(steps, values)`` of one metric, in step order."""
+    history = sorted(client.get_metric_history(run_id, key), key=lambda m: m.step)
+    return [m.step for m in history], [m.value for m in history]
+
+
 def flatten(d: Mapping, prefix: str = "") -> dict[str, str]:
     """{"algo": {"lr": 3e-4}} -> {"algo.lr": "0.0003"} (lists stay whole: "[256, 256]")."""
     out = {}
@@ -115,6 +145,11 @@ class Tracker:
         run = client.get_run(run_id)
         _with_retries(client.update_run, run_id, status="RUNNING")
         return cls(client, run_id, run.info.experiment_id, spool_dir)
+
+    @classmethod
+    def attach(cls, client, run_id: str, spool_dir) -> Tracker:
+        """Log more to an existing run (e.g. evaluation videos) without changing its status."""
+        return cls(client, run_id, client.get_run(run_id).info.experiment_id, spool_dir)
 
     @property
     def url(self) -> str:

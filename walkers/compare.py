@@ -1,0 +1,385 @@
+"""``python -m walkers.compare``: finished runs in MLflow -> an A/B report with a verdict.
+
+    python -m walkers.compare env=walker2d algos=[reinforce,td3] tracking.experiment=ab_walker2d
+
+Runs are grouped by their ``algo`` tag, one seed per run. Only comparable runs enter: the
+chosen env, one budget (``total_steps``), status FINISHED; everything else is left out with a
+note in the report. Every per-run number comes from the run's logged eval curve through the same
+:func:`walkers.stats.run_summary` the trainer uses; across seeds the statistics are those of
+Agarwal et al. 2021 (:mod:`walkers.stats`).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import sys
+from collections import Counter
+from dataclasses import dataclass, field
+from itertools import combinations
+from pathlib import Path
+
+import hydra
+import numpy as np
+from omegaconf import DictConfig
+
+from walkers import stats, tracking
+from walkers.cli import exit_on_bad_overrides
+from walkers.errors import ConfigError
+from walkers.report import write_report
+from walkers.trial import PRUNED_TAG
+
+log = logging.getLogger("walkers")
+
+CURVE_METRIC = "eval/return_mean"
+SCORES = ("final/return_mean", "final/return_last10", "final/auc")
+#: Tag that marks runs which are not training runs (reports, sweep parents).
+KIND_TAG = "walkers.kind"
+
+
+def _finite_or_none(x: float) -> float | None:
+    """JSON has no inf/nan: "never reached" and "no CI" become null."""
+    return float(x) if np.isfinite(x) else None
+
+
+@dataclass
+class SeedRun:
+    """One training run as the comparison sees it."""
+
+    run_id: str
+    algo: str
+    seed: str
+    steps: np.ndarray
+    returns: np.ndarray
+    summary: dict[str, float]
+
+
+@dataclass
+class AlgoResult:
+    algo: str
+    runs: list[SeedRun]
+    scores: np.ndarray
+    iqm: tuple[float, float, float]  # point, low, high
+    auc: np.ndarray
+    steps_to_threshold: np.ndarray  # inf where a seed never reached it
+
+    def as_dict(self) -> dict:
+        reached = np.isfinite(self.steps_to_threshold)
+        return {
+            "seeds": len(self.runs),
+            "run_ids": [r.run_id for r in self.runs],
+            "score_mean": float(self.scores.mean()),
+            "score_std": float(self.scores.std()),
+            "iqm": self.iqm[0],
+            "iqm_low": _finite_or_none(self.iqm[1]),
+            "iqm_high": _finite_or_none(self.iqm[2]),
+            "auc_mean": float(self.auc.mean()),
+            "auc_std": float(self.auc.std()),
+            "threshold_reached": int(reached.sum()),
+            "steps_to_threshold_median": _finite_or_none(np.median(self.steps_to_threshold)),
+        }
+
+
+@dataclass
+class PairResult:
+    """A vs B on one per-seed quantity: P(A > B) with its CI and a Mann-Whitney p-value."""
+
+    a: str
+    b: str
+    quantity: str
+    p_improvement: tuple[float, float, float]
+    p_value: float
+
+    def decisive(self, confidence: float) -> int:
+        """+1 if A is reliably better, -1 if B is, 0 if the data can't tell."""
+        _, low, high = self.p_improvement
+        if not self.p_value < 1 - confidence:
+            return 0
+        return 1 if low > 0.5 else -1 if high < 0.5 else 0
+
+
+@dataclass
+class Comparison:
+    env_id: str
+    threshold: float
+    budget: int | None
+    score: str
+    confidence: float
+    algos: list[AlgoResult]
+    pairs: list[PairResult]
+    grid: np.ndarray  # env steps of the aligned learning curves
+    left_out: list[str] = field(default_factory=list)
+
+    def as_dict(self) -> dict:
+        return {
+            "env": self.env_id,
+            "threshold": self.threshold,
+            "total_steps": self.budget,
+            "score": self.score,
+            "confidence": self.confidence,
+            "algos": {r.algo: r.as_dict() for r in self.algos},
+            "pairs": [
+                {
+                    "a": p.a,
+                    "b": p.b,
+                    "quantity": p.quantity,
+                    "p_improvement": p.p_improvement[0],
+                    "p_improvement_low": _finite_or_none(p.p_improvement[1]),
+                    "p_improvement_high": _finite_or_none(p.p_improvement[2]),
+                    "mann_whitney_p": p.p_value,
+                    "verdict": p.decisive(self.confidence),
+                }
+                for p in self.pairs
+            ],
+            "left_out": self.left_out,
+        }
+
+
+# --- choosing the runs ----------------------------------------------------------------------
+
+
+def _budget(run) -> int | None:
+    value = run.data.params.get("total_steps")
+    return int(value) if value is not None and value.isdigit() else None
+
+
+def _runs(n: int) -> str:
+    return f"{n} run" if n == 1 else f"{n} runs"
+
+
+def select_runs(runs: list, env_id: str, algos: list[str], budget: int | None):
+    """The comparable training runs of ``algos`` on ``env_id``, and notes on the rest.
+
+    Returns ``(chosen runs, budget, notes)``. The budget is ``budget`` if given, else the most
+    common one among the finished runs on the env.
+    """
+    notes: list[str] = []
+    training = [r for r in runs if r.data.tags.get(KIND_TAG, "train") == "train"]
+    wanted = [r for r in training if not algos or r.data.tags.get("algo") in algos]
+    other_envs = Counter(r.data.tags.get("env") for r in wanted if r.data.tags.get("env") != env_id)
+    if other_envs:
+        listed = ", ".join(f"{env}: {n}" for env, n in sorted(other_envs.items(), key=str))
+        notes.append(f"{_runs(sum(other_envs.values()))} on other envs ({listed})")
+    on_env = [r for r in wanted if r.data.tags.get("env") == env_id]
+    unfinished = [r for r in on_env if r.info.status != tracking.FINISHED]
+    for r in unfinished:
+        notes.append(
+            f"run {r.info.run_id} ({r.data.tags.get('algo')}, seed {r.data.tags.get('seed')}) "
+            f"is {r.info.status}"
+        )
+    pruned = [r for r in on_env if PRUNED_TAG in r.data.tags]
+    if pruned:
+        notes.append(f"{_runs(len(pruned))} of sweep trials stopped early by pruning")
+    finished = [
+        r for r in on_env if r.info.status == tracking.FINISHED and PRUNED_TAG not in r.data.tags
+    ]
+    if budget is None and finished:
+        budget = Counter(_budget(r) for r in finished).most_common(1)[0][0]
+    other_budget = [r for r in finished if _budget(r) != budget]
+    if other_budget:
+        budgets = Counter(_budget(r) for r in other_budget)
+        listed = ", ".join(f"total_steps={b}: {n}" for b, n in sorted(budgets.items(), key=str))
+        notes.append(f"{_runs(len(other_budget))} with another budget than {budget} ({listed})")
+    chosen = [r for r in finished if _budget(r) == budget]
+    return chosen, budget, notes
+
+
+def load_seed_runs(client, runs: list, threshold: float) -> dict[str, list[SeedRun]]:
+    """Eval curves and summaries of ``runs``, grouped by algorithm (runs without evals skipped)."""
+    grouped: dict[str, list[SeedRun]] = {}
+    for run in runs:
+        steps, values = tracking.metric_history(client, run.info.run_id, CURVE_METRIC)
+        if not steps:
+            continue
+        seed_run = SeedRun(
+            run_id=run.info.run_id,
+            algo=run.data.tags["algo"],
+            seed=run.data.tags.get("seed", "?"),
+            steps=np.asarray(steps),
+            returns=np.asarray(values),
+            summary=stats.run_summary(steps, values, threshold),
+        )
+        grouped.setdefault(seed_run.algo, []).append(seed_run)
+    return grouped
+
+
+# --- the statistics -------------------------------------------------------------------------
+
+
+def compare_groups(
+    grouped: dict[str, list[SeedRun]],
+    order: list[str],
+    *,
+    env_id: str,
+    threshold: float,
+    budget: int | None,
+    score: str,
+    confidence: float = 0.95,
+    n_resamples: int = 5000,
+    seed: int = 0,
+) -> Comparison:
+    """Per-algorithm summaries and every pairwise comparison, in ``order``."""
+    boot = {"confidence": confidence, "n_resamples": n_resamples, "seed": seed}
+    results = []
+    for algo in order:
+        runs = sorted(grouped[algo], key=lambda r: r.seed)
+        scores = np.array([r.summary[score] for r in runs])
+        results.append(
+            AlgoResult(
+                algo=algo,
+                runs=runs,
+                scores=scores,
+                iqm=stats.iqm_ci([scores], **boot),
+                auc=np.array([r.summary["final/auc"] for r in runs]),
+                steps_to_threshold=np.array([r.summary["final/steps_to_threshold"] for r in runs]),
+            )
+        )
+    pairs = []
+    for a, b in combinations(results, 2):
+        for quantity, xa, xb in (("score", a.scores, b.scores), ("auc", a.auc, b.auc)):
+            pairs.append(
+                PairResult(
+                    a.algo,
+                    b.algo,
+                    quantity,
+                    stats.poi_ci(xa, xb, **boot),
+                    stats.mann_whitney_p(xa, xb),
+                )
+            )
+    all_steps = np.concatenate([r.steps for res in results for r in res.runs])
+    return Comparison(
+        env_id=env_id,
+        threshold=threshold,
+        budget=budget,
+        score=score,
+        confidence=confidence,
+        algos=results,
+        pairs=pairs,
+        grid=np.unique(all_steps),
+    )
+
+
+def curves_on_grid(result: AlgoResult, grid: np.ndarray) -> np.ndarray:
+    """Seeds x grid matrix of eval returns (runs evaluated at other steps are interpolated)."""
+    return np.stack([np.interp(grid, r.steps, r.returns) for r in result.runs])
+
+
+# --- the command ----------------------------------------------------------------------------
+
+
+def _check(cfg: DictConfig) -> None:
+    if cfg.score not in SCORES:
+        raise ConfigError(f"score={cfg.score!r} is not allowed: must be one of {', '.join(SCORES)}")
+    if not 0 < cfg.confidence < 1:
+        raise ConfigError(f"confidence={cfg.confidence!r} is not allowed: must be in (0, 1)")
+    if not (isinstance(cfg.n_resamples, int) and cfg.n_resamples >= 100):
+        raise ConfigError(f"n_resamples={cfg.n_resamples!r} is not allowed: must be >= 100")
+
+
+def compare(cfg: DictConfig) -> tuple[Comparison, Path, str | None]:
+    """Build the comparison ``cfg`` asks for, write the report; returns it, its dir, a UI link."""
+    _check(cfg)
+    client = tracking.connect(cfg.tracking.uri)
+    experiment = client.get_experiment_by_name(cfg.tracking.experiment)
+    if experiment is None:
+        names = [e.name for e in client.search_experiments()]
+        raise ConfigError(
+            f"tracking.experiment={cfg.tracking.experiment!r} is not in {cfg.tracking.uri}; "
+            f"experiments there: {', '.join(names) or 'none'}"
+        )
+    algos = list(cfg.algos)
+    runs = tracking.search_runs(client, experiment.experiment_id)
+    chosen, budget, notes = select_runs(runs, cfg.env.id, algos, cfg.total_steps)
+    grouped = load_seed_runs(client, chosen, cfg.env.threshold)
+    order = algos or sorted(grouped)
+    missing = [a for a in order if a not in grouped]
+    if missing or not order:
+        found = sorted({r.data.tags.get("algo") for r in runs if r.data.tags.get("algo")})
+        raise ConfigError(
+            f"algos={order} has no finished {cfg.env.id} runs for {', '.join(missing) or 'any'} "
+            f"in experiment {cfg.tracking.experiment!r} (algorithms with runs there: "
+            f"{', '.join(found) or 'none'})" + (f"; left out: {'; '.join(notes)}" if notes else "")
+        )
+    comparison = compare_groups(
+        grouped,
+        order,
+        env_id=cfg.env.id,
+        threshold=cfg.env.threshold,
+        budget=budget,
+        score=cfg.score,
+        confidence=cfg.confidence,
+        n_resamples=cfg.n_resamples,
+        seed=cfg.seed,
+    )
+    comparison.left_out = notes
+    out = Path(cfg.out)
+    files = write_report(
+        comparison, out, source=f"{cfg.tracking.uri}, experiment {cfg.tracking.experiment!r}"
+    )
+    url = _log_report(client, cfg, comparison, files) if cfg.log_report else None
+    return comparison, out, url
+
+
+def _log_report(client, cfg: DictConfig, comparison: Comparison, files: list[Path]) -> str:
+    """The report as an MLflow run of its own, beside the runs it compares."""
+    from walkers.report import verdict
+
+    names = [r.algo for r in comparison.algos]
+    tracker = tracking.Tracker.start(
+        client,
+        cfg.tracking.experiment,
+        run_name=f"report-{'-vs-'.join(names)}-{comparison.env_id}",
+        tags={
+            KIND_TAG: "report",
+            "env": comparison.env_id,
+            "algos": ",".join(names),
+            "mlflow.note.content": verdict(comparison),
+        },
+        spool_dir=Path(cfg.work_dir) / "spool",
+    )
+    status = tracking.FAILED
+    try:
+        tracker.log_params(
+            {
+                "score": comparison.score,
+                "total_steps": comparison.budget,
+                "confidence": comparison.confidence,
+                "n_resamples": cfg.n_resamples,
+                **{f"runs.{r.algo}": len(r.runs) for r in comparison.algos},
+            }
+        )
+        tracker.log_metrics(
+            {
+                f"{r.algo}/{key}": value
+                for r in comparison.algos
+                for key, value in r.as_dict().items()
+                if isinstance(value, float | int) and math.isfinite(value)
+            },
+            step=0,
+        )
+        for path in files:
+            tracker.log_artifact(path)
+        status = tracking.FINISHED
+    finally:
+        tracker.end(status)
+    return tracker.url
+
+
+@hydra.main(config_path="../conf", config_name="compare")
+def main(cfg: DictConfig) -> None:
+    try:
+        comparison, out, url = compare(cfg)
+    except ConfigError as e:
+        print(f"error: {e}", file=sys.stderr)
+        sys.exit(2)
+    from walkers.report import verdict
+
+    print(verdict(comparison))
+    print(f"report: {out / 'report.md'}")
+    if url:
+        print(f"MLflow: `make ui`, then {url}")
+
+
+if __name__ == "__main__":
+    exit_on_bad_overrides("compare")
+    main()

@@ -1,0 +1,140 @@
+"""``python -m walkers.evaluate``: replay a trained policy, print its return, record a video.
+
+    python -m walkers.evaluate run_id=<id> checkpoint=best episodes=10 video=true out=<dir>
+    python -m walkers.evaluate checkpoint=path/to/best.pt render=human
+
+The checkpoint carries the run's config, so the env and the agent are rebuilt exactly as they
+were trained. Episodes are deterministic (``explore=False``) and seeded like the run's own
+evaluations. Rendering is headless (``rgb_array``, MuJoCo through EGL) unless ``render=human``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import sys
+from pathlib import Path
+
+import hydra
+import numpy as np
+from omegaconf import DictConfig, OmegaConf
+
+from walkers import checkpoints, tracking
+from walkers.cli import exit_on_bad_overrides
+from walkers.envs import env_spaces, make_env
+from walkers.errors import CheckpointError, ConfigError
+from walkers.rollout import run_episodes
+from walkers.trainer import EVAL_SEED_OFFSET
+from walkers.video import write_videos
+
+log = logging.getLogger("walkers")
+
+NAMED_CHECKPOINTS = ("best", "last")
+RENDER_MODES = ("rgb_array", "human")
+
+
+def _check(cfg: DictConfig) -> None:
+    if cfg.render not in RENDER_MODES:
+        raise ConfigError(f"render={cfg.render!r} is not allowed: must be one of rgb_array, human")
+    for key in ("episodes", "video_episodes"):
+        if not (isinstance(cfg[key], int) and cfg[key] > 0):
+            raise ConfigError(f"{key}={cfg[key]!r} is not allowed: must be an integer > 0")
+    if cfg.checkpoint in NAMED_CHECKPOINTS and not cfg.run_id:
+        raise ConfigError(
+            f"checkpoint={cfg.checkpoint} needs run_id=<MLflow run id>; "
+            "or pass checkpoint=<path to a .pt file>"
+        )
+
+
+def fetch_checkpoint(cfg: DictConfig, client) -> Path:
+    """The local path of the checkpoint ``cfg`` names (downloaded from the run if named)."""
+    if cfg.checkpoint not in NAMED_CHECKPOINTS:
+        path = Path(cfg.checkpoint)
+        if not path.is_file():
+            raise ConfigError(
+                f"checkpoint={cfg.checkpoint!r} is not allowed: must be best, last "
+                "or the path of an existing .pt file"
+            )
+        return path
+    dst = Path(cfg.work_dir) / "runs" / cfg.run_id / "download"
+    try:
+        return Path(
+            client.download_artifacts(cfg.run_id, f"checkpoints/{cfg.checkpoint}.pt", str(dst))
+        )
+    except Exception:
+        raise CheckpointError(
+            f"run {cfg.run_id} has no checkpoints/{cfg.checkpoint}.pt artifact"
+        ) from None
+
+
+def evaluate(cfg: DictConfig) -> dict:
+    """Replay the policy; returns ``{"returns": [...], "videos": [paths]}``."""
+    from walkers.train import build_agent  # the one place agents are instantiated
+
+    _check(cfg)
+    client = None
+    if cfg.run_id:
+        client = tracking.connect(cfg.tracking.uri)
+        tracking.require_run(client, cfg.run_id, cfg.tracking.uri)
+    state = checkpoints.load(fetch_checkpoint(cfg, client))
+    run_cfg = OmegaConf.create(state["config"])
+    run_cfg.device = cfg.device
+    env = make_env(run_cfg.env, shaping=False, render_mode=cfg.render)
+    try:
+        agent = build_agent(run_cfg, env_spaces(env))
+        agent.load_state_dict(state["agent"])
+        seed = cfg.seed if cfg.seed is not None else run_cfg.seed + EVAL_SEED_OFFSET
+        frames: list[np.ndarray] = []
+        record = cfg.video and cfg.render == "rgb_array"
+        returns = run_episodes(
+            agent,
+            env,
+            cfg.episodes,
+            seed,
+            on_frame=(lambda _, frame: frames.append(frame)) if record else None,
+            render_episodes=cfg.video_episodes,
+        )
+        fps = env.metadata.get("render_fps") or 30
+    finally:
+        env.close()
+    name = cfg.run_id or Path(cfg.checkpoint).stem
+    out = Path(cfg.out) if cfg.out else Path(cfg.work_dir) / "evaluations" / name
+    stem = out / f"{run_cfg.algo.name}-{run_cfg.env.id}-{Path(str(cfg.checkpoint)).stem}"
+    videos = write_videos(frames, stem, fps) if frames else []
+    summary = {
+        "checkpoint": str(cfg.checkpoint),
+        "episodes": cfg.episodes,
+        "seed": seed,
+        "return_mean": float(returns.mean()),
+        "return_std": float(returns.std()),
+        "returns": returns.tolist(),
+    }
+    out.mkdir(parents=True, exist_ok=True)
+    summary_file = stem.with_suffix(".json")
+    summary_file.write_text(json.dumps(summary, indent=2))
+    if client is not None and cfg.log_to_run:
+        run = tracking.Tracker.attach(client, cfg.run_id, Path(cfg.work_dir) / "spool")
+        for path in [*videos, summary_file]:
+            run.log_artifact(path, "evaluations")
+    return {**summary, "videos": videos}
+
+
+@hydra.main(config_path="../conf", config_name="evaluate")
+def main(cfg: DictConfig) -> None:
+    try:
+        result = evaluate(cfg)
+    except (ConfigError, CheckpointError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        sys.exit(2)
+    print(
+        f"return over {result['episodes']} episodes: "
+        f"{result['return_mean']:.1f} ± {result['return_std']:.1f} "
+        f"(min {min(result['returns']):.1f}, max {max(result['returns']):.1f})"
+    )
+    for path in result["videos"]:
+        print(f"video: {path}")
+
+
+if __name__ == "__main__":
+    exit_on_bad_overrides("evaluate")
+    main()

@@ -1,0 +1,191 @@
+"""The A/B report: a plain-language verdict, tables, learning-curve and score plots.
+
+Everything here renders a :class:`walkers.compare.Comparison`; nothing is computed that the
+comparison does not hold, except the learning-curve bands (a bootstrap over seeds per step).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import matplotlib
+
+matplotlib.use("Agg")  # files only, never a window
+import matplotlib.pyplot as plt  # noqa: E402
+
+from walkers import stats  # noqa: E402
+
+if TYPE_CHECKING:
+    from walkers.compare import Comparison
+
+QUANTITY_NAMES = {"score": "final return", "auc": "AUC (rate of learning)"}
+
+
+def _num(x: float) -> str:
+    if x is None or not math.isfinite(x):
+        return "n/a"
+    return f"{x:,.0f}" if abs(x) >= 100 else f"{x:.3g}"
+
+
+def _interval(point: float, low: float, high: float) -> str:
+    if math.isnan(low):
+        return f"{_num(point)} (too few seeds for a CI)"
+    return f"{_num(point)} [{_num(low)}, {_num(high)}]"
+
+
+def _steps(x: float | None) -> str:
+    return "not reached" if x is None or not math.isfinite(x) else f"{x:,.0f}"
+
+
+def verdict(c: Comparison) -> str:
+    """One paragraph: which algorithm learns better and faster, and how sure we can be."""
+    level = f"{c.confidence:.0%}"
+    ranked = sorted(c.algos, key=lambda r: -r.iqm[0])
+    seeds = ", ".join(f"{r.algo} {len(r.runs)}" for r in c.algos)
+    budget = f"{c.budget:,} env steps" if c.budget else "their budget"
+    lines = [f"On {c.env_id} ({budget}; seeds: {seeds}), ranked by IQM of {c.score}:"]
+    lines.append(", ".join(f"{r.algo} {_interval(*r.iqm)}" for r in ranked) + f" ({level} CIs).")
+    for pair in c.pairs:
+        better = pair.decisive(c.confidence)
+        name = QUANTITY_NAMES[pair.quantity]
+        evidence = (
+            f"P({pair.a} > {pair.b}) = {_interval(*pair.p_improvement)}, "
+            f"Mann-Whitney p = {pair.p_value:.3g}"
+        )
+        if better:
+            winner, loser = (pair.a, pair.b) if better > 0 else (pair.b, pair.a)
+            word = "learns better than" if pair.quantity == "score" else "learns faster than"
+            lines.append(f"{winner} {word} {loser} on {name} ({evidence}).")
+        else:
+            lines.append(
+                f"{pair.a} and {pair.b} are not reliably different on {name} ({evidence}); "
+                "more seeds would be needed to separate them."
+            )
+    reached = [f"{r.algo} {r.as_dict()['threshold_reached']}/{len(r.runs)}" for r in c.algos]
+    lines.append(f"Seeds reaching the threshold {_num(c.threshold)}: {', '.join(reached)}.")
+    return " ".join(lines)
+
+
+def plot_learning_curves(c: Comparison, path: Path) -> Path:
+    from walkers.compare import curves_on_grid
+
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    for result in c.algos:
+        mean, low, high = stats.mean_band(curves_on_grid(result, c.grid), c.confidence)
+        (line,) = ax.plot(c.grid, mean, label=f"{result.algo} ({len(result.runs)} seeds)")
+        ax.fill_between(c.grid, low, high, color=line.get_color(), alpha=0.2, linewidth=0)
+    ax.axhline(c.threshold, color="grey", linestyle="--", linewidth=1, label="threshold")
+    ax.set_xlabel("env steps")
+    ax.set_ylabel(f"eval return (mean, {c.confidence:.0%} bootstrap CI)")
+    ax.set_title(c.env_id)
+    ax.legend()
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def plot_scores(c: Comparison, path: Path) -> Path:
+    """Every seed's score as a dot, the IQM with its CI as a bar: nothing hidden in a mean."""
+    fig, ax = plt.subplots(figsize=(1.6 * len(c.algos) + 2.5, 4))
+    for i, result in enumerate(c.algos):
+        ax.scatter([i] * len(result.scores), result.scores, alpha=0.6, zorder=3)
+        point, low, high = result.iqm
+        if not math.isnan(low):
+            ax.errorbar(
+                i + 0.15,
+                point,
+                yerr=[[point - low], [high - point]],
+                fmt="none",
+                ecolor="black",
+                capsize=5,
+            )
+        ax.plot(i + 0.15, point, "k_", markersize=14)
+    ax.set_xticks(range(len(c.algos)), [r.algo for r in c.algos])
+    ax.set_ylabel(f"{c.score} (dots: seeds; bar: IQM, {c.confidence:.0%} CI)")
+    ax.set_title(c.env_id)
+    ax.grid(alpha=0.3, axis="y")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def markdown(c: Comparison, source: str) -> str:
+    level = f"{c.confidence:.0%}"
+    names = " vs ".join(r.algo for r in c.algos)
+    out = [f"# {names} on {c.env_id}", "", verdict(c), ""]
+    out += [
+        f"Runs from {source}; budget {c.budget:,} env steps; score `{c.score}`; threshold "
+        f"{_num(c.threshold)}. IQM = interquartile mean; CIs are {level} percentile bootstraps "
+        "over seeds (stratified per env); P(A > B) is the probability that a random seed of A "
+        "beats a random seed of B (Mann-Whitney U / nm), after Agarwal et al. 2021. A verdict "
+        f"needs the CI of P(A > B) to exclude 0.5 and Mann-Whitney p < {1 - c.confidence:.2g}.",
+        "",
+        "## Per algorithm",
+        "",
+        f"| algorithm | seeds | {c.score} mean ± std | IQM [{level} CI] | AUC mean ± std "
+        "| steps to threshold (median) | seeds reaching it |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for r in c.algos:
+        d = r.as_dict()
+        out.append(
+            f"| {r.algo} | {d['seeds']} | {_num(d['score_mean'])} ± {_num(d['score_std'])} "
+            f"| {_interval(*r.iqm)} | {_num(d['auc_mean'])} ± {_num(d['auc_std'])} "
+            f"| {_steps(d['steps_to_threshold_median'])} | {d['threshold_reached']}/{d['seeds']} |"
+        )
+    out += [
+        "",
+        "## Pairwise",
+        "",
+        f"| A vs B | on | P(A > B) [{level} CI] | Mann-Whitney p |",
+        "|---|---|---|---|",
+    ]
+    for p in c.pairs:
+        out.append(
+            f"| {p.a} vs {p.b} | {QUANTITY_NAMES[p.quantity]} | {_interval(*p.p_improvement)} "
+            f"| {p.p_value:.3g} |"
+        )
+    out += [
+        "",
+        "## Learning curves",
+        "",
+        "![learning curves](learning_curves.png)",
+        "",
+        "![scores](scores.png)",
+        "",
+        "## Runs",
+        "",
+        f"| algorithm | seed | run id | {c.score} | AUC | steps to threshold |",
+        "|---|---|---|---|---|---|",
+    ]
+    for r in c.algos:
+        for run in r.runs:
+            s = run.summary
+            out.append(
+                f"| {r.algo} | {run.seed} | `{run.run_id}` | {_num(s[c.score])} "
+                f"| {_num(s['final/auc'])} | {_steps(s['final/steps_to_threshold'])} |"
+            )
+    if c.left_out:
+        out += ["", "## Left out", ""] + [f"- {note}" for note in c.left_out]
+    return "\n".join(out) + "\n"
+
+
+def write_report(c: Comparison, out: Path, source: str) -> list[Path]:
+    """``report.md``, ``summary.json``, ``learning_curves.png``, ``scores.png`` in ``out``."""
+    out.mkdir(parents=True, exist_ok=True)
+    report = out / "report.md"
+    report.write_text(markdown(c, source))
+    summary = out / "summary.json"
+    summary.write_text(json.dumps(c.as_dict(), indent=2))
+    return [
+        report,
+        summary,
+        plot_learning_curves(c, out / "learning_curves.png"),
+        plot_scores(c, out / "scores.png"),
+    ]

@@ -11,6 +11,8 @@ and returns the value of ``optimized_metric`` (what an Optuna sweep maximizes).
 from __future__ import annotations
 
 import logging
+import math
+import os
 import signal
 import subprocess
 import sys
@@ -24,9 +26,11 @@ from omegaconf import DictConfig, OmegaConf
 
 from walkers import PROJECT_ROOT, checkpoints, tracking
 from walkers.agents.base import Agent, resolve_device
+from walkers.cli import exit_on_bad_overrides
 from walkers.envs import env_spaces, make_env
 from walkers.errors import CheckpointError, ConfigError
-from walkers.trainer import Trainer, TrainerSettings
+from walkers.trainer import Trainer, TrainerSettings, TrainingDiverged
+from walkers.trial import PRUNED_TAG, TrialReporter
 from walkers.validate import validate
 
 log = logging.getLogger("walkers")
@@ -41,6 +45,7 @@ RESUME_OVERRIDABLE = (
     "log_every",
     "save_buffer",
     "work_dir",
+    "video_every",
 )
 
 
@@ -89,13 +94,7 @@ def _override_keys(overrides) -> set[str]:
 def _load_resume_checkpoint(client, cfg: DictConfig, overrides) -> tuple[DictConfig, dict]:
     """The run's stored config (with the allowed new overrides) and its ``last.pt``."""
     run_id = str(cfg.resume)
-    try:
-        client.get_run(run_id)
-    except Exception:
-        raise ConfigError(
-            f"resume={run_id!r} is not a run in tracking.uri={cfg.tracking.uri!r}; "
-            "pass the run id shown at the end of a training run or in the MLflow UI"
-        ) from None
+    tracking.require_run(client, run_id, cfg.tracking.uri, key="resume")
     dst = Path(cfg.work_dir) / "runs" / run_id / "download"
     try:
         path = Path(client.download_artifacts(run_id, "checkpoints/last.pt", str(dst)))
@@ -127,13 +126,16 @@ def train(cfg: DictConfig, overrides: list[str] | tuple = ()) -> float:
         torch.set_num_threads(cfg.torch_threads)
     env = make_env(cfg.env)
     eval_env = make_env(cfg.env, shaping=False)
+    video_env = None
+    if cfg.video_every:
+        video_env = make_env(cfg.env, shaping=False, render_mode="rgb_array")
     try:
         agent = build_agent(cfg, env_spaces(env))
         tracker = _open_run(client, cfg)
         # From here on the run exists in MLflow: every exit path below sets its final status.
         status = tracking.FAILED
         try:
-            summary = _train_in_run(cfg, tracker, agent, env, eval_env, resume_state)
+            summary = _train_in_run(cfg, tracker, agent, env, eval_env, video_env, resume_state)
             status = tracking.FINISHED
         except KeyboardInterrupt:
             status = tracking.KILLED
@@ -143,8 +145,9 @@ def train(cfg: DictConfig, overrides: list[str] | tuple = ()) -> float:
             log.info("MLflow run %s ended %s", tracker.run_id, status)
             log.info("open it: `make ui`, then %s", tracker.url)
     finally:
-        env.close()
-        eval_env.close()
+        for e in (env, eval_env, video_env):
+            if e is not None:
+                e.close()
     value = summary.get(cfg.optimized_metric, float("nan"))
     log.info("%s = %s", cfg.optimized_metric, value)
     return value
@@ -156,18 +159,21 @@ def _open_run(client, cfg: DictConfig) -> tracking.Tracker:
     if cfg.resume:
         return tracking.Tracker.reopen(client, cfg.resume, spool)
     algo, env_id, commit = cfg.algo.name, cfg.env.id, git_commit()
+    tags = {
+        "algo": algo,
+        "env": env_id,
+        "seed": str(cfg.seed),
+        "git_commit": commit,
+        "mlflow.source.git.commit": commit,
+    }
+    run_name = cfg.tracking.run_name or f"{algo}-{env_id}-s{cfg.seed}"
+    if cfg.sweep.trial_number is not None:  # a trial of an Optuna study
+        tags |= {"walkers.study": cfg.sweep.study, "walkers.trial": str(cfg.sweep.trial_number)}
+        run_name = f"{cfg.sweep.study}-trial{cfg.sweep.trial_number}"
+        if cfg.sweep.parent_run_id:
+            tags["mlflow.parentRunId"] = cfg.sweep.parent_run_id
     tracker = tracking.Tracker.start(
-        client,
-        cfg.tracking.experiment,
-        run_name=cfg.tracking.run_name or f"{algo}-{env_id}-s{cfg.seed}",
-        tags={
-            "algo": algo,
-            "env": env_id,
-            "seed": str(cfg.seed),
-            "git_commit": commit,
-            "mlflow.source.git.commit": commit,
-        },
-        spool_dir=spool,
+        client, cfg.tracking.experiment, run_name=run_name, tags=tags, spool_dir=spool
     )
     try:
         tracker.log_params(tracking.flatten(OmegaConf.to_container(cfg, resolve=True)))
@@ -177,7 +183,8 @@ def _open_run(client, cfg: DictConfig) -> tracking.Tracker:
     return tracker
 
 
-def _train_in_run(cfg, tracker, agent, env, eval_env, resume_state) -> dict[str, float]:
+def _train_in_run(cfg, tracker, agent, env, eval_env, video_env, resume_state) -> dict[str, float]:
+    reporter = TrialReporter(cfg.sweep) if cfg.sweep.trial_id is not None else None
     run_dir = Path(cfg.work_dir) / "runs" / tracker.run_id
     config_yaml = run_dir / "config.yaml"
     config_yaml.parent.mkdir(parents=True, exist_ok=True)
@@ -193,6 +200,8 @@ def _train_in_run(cfg, tracker, agent, env, eval_env, resume_state) -> dict[str,
         threshold=cfg.env.threshold,
         save_buffer=cfg.save_buffer,
         progress=cfg.progress,
+        video_every=cfg.video_every,
+        divergence_patience=cfg.divergence_patience,
     )
     trainer = Trainer(
         agent,
@@ -202,29 +211,48 @@ def _train_in_run(cfg, tracker, agent, env, eval_env, resume_state) -> dict[str,
         settings,
         checkpoint_dir=run_dir / "checkpoints",
         checkpoint_extra={"config": OmegaConf.to_container(cfg, resolve=True)},
+        video_env=video_env,
+        on_evaluation=reporter,
     )
     if resume_state is not None:
         trainer.restore(resume_state)
         log.info("resuming run %s at step %d", tracker.run_id, trainer.progress.step)
-    return trainer.run()
+    summary = trainer.run()
+    if trainer.stopped_early:
+        tracker.set_tags({PRUNED_TAG: trainer.progress.step})
+    return summary
+
+
+def parallel_jobs() -> int:
+    """How many jobs Hydra's launcher runs at once (``n_jobs`` of e.g. the joblib launcher)."""
+    n_jobs = HydraConfig.get().launcher.get("n_jobs") or 1
+    return (os.cpu_count() or 1) if n_jobs < 0 else n_jobs
 
 
 def _raise_keyboard_interrupt(signum, frame):
     raise KeyboardInterrupt(f"signal {signum}")
 
 
-@hydra.main(config_path="../conf", config_name="train")
+@hydra.main(config_path="../conf", config_name="train", execution_whitelist=["walkers.*"])
 def main(cfg: DictConfig) -> float:
     signal.signal(signal.SIGTERM, _raise_keyboard_interrupt)  # SIGTERM ends the run like Ctrl-C
+    if cfg.torch_threads is None and parallel_jobs() > 1:  # parallel jobs share the cores
+        cfg.torch_threads = max(1, (os.cpu_count() or 1) // parallel_jobs())
     try:
         return train(cfg, HydraConfig.get().overrides.task)
     except (ConfigError, CheckpointError) as e:
         print(f"error: {e}", file=sys.stderr)
         sys.exit(2)
+    except TrainingDiverged as e:
+        print(f"error: {e}; MLflow run marked FAILED", file=sys.stderr)
+        if cfg.sweep.trial_id is not None:
+            return math.nan  # the sweeper scores a diverged trial as the worst one so far
+        sys.exit(3)
     except KeyboardInterrupt:
         print("interrupted: last checkpoint saved, MLflow run marked KILLED", file=sys.stderr)
         sys.exit(130)
 
 
 if __name__ == "__main__":
+    exit_on_bad_overrides("train")
     main()

@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -21,11 +22,21 @@ from tqdm import tqdm
 
 from walkers import checkpoints
 from walkers.agents.base import Agent, Transition
+from walkers.agents.health import SKIPPED_IN_A_ROW
 from walkers.rollout import run_episodes
 from walkers.stats import run_summary
 from walkers.tracking import Tracker
+from walkers.video import write_gif
 
 EVAL_SEED_OFFSET = 10_000
+
+
+class TrainingDiverged(RuntimeError):
+    """Every update for ``divergence_patience`` updates in a row had a NaN/inf loss."""
+
+
+#: Frames kept in the gif logged every ``video_every`` steps (a glance, not a film).
+TRAINING_GIF_FRAMES = 500
 
 
 @dataclass
@@ -39,6 +50,8 @@ class TrainerSettings:
     threshold: float
     save_buffer: bool = False
     progress: bool = True
+    video_every: int = 0  # env steps between gifs of the greedy policy; 0: never
+    divergence_patience: int = 100  # skipped (NaN/inf) updates in a row that end the run FAILED
 
 
 @dataclass
@@ -62,11 +75,17 @@ class Trainer:
         settings: TrainerSettings,
         checkpoint_dir: Path,
         checkpoint_extra: dict | None = None,
+        video_env: gym.Env | None = None,
+        on_evaluation: Callable[[int, float], bool] | None = None,
     ):
-        self.agent, self.env, self.eval_env = agent, env, eval_env
+        self.agent, self.env, self.eval_env, self.video_env = agent, env, eval_env, video_env
         self.tracker, self.settings = tracker, settings
         self.checkpoint_dir = Path(checkpoint_dir)
         self.checkpoint_extra = checkpoint_extra or {}  # e.g. the composed config
+        # called with (step, eval mean) after each evaluation; True stops training (a pruned trial)
+        self.on_evaluation = on_evaluation
+        self.stopped_early = False
+        self.last_checkpoint_step: int | None = None
         self.progress = Progress()
 
     # --- checkpoints --------------------------------------------------------------------------
@@ -74,6 +93,7 @@ class Trainer:
         """Continue from a checkpoint written by this class."""
         self.agent.load_state_dict(state["agent"])
         self.progress = Progress(**state["trainer"])
+        self.last_checkpoint_step = self.progress.step
         torch.set_rng_state(state["torch_rng"])
 
     def save_checkpoint(self, name: str = "last.pt") -> Path:
@@ -91,7 +111,22 @@ class Trainer:
     def _checkpoint_and_flush(self) -> None:
         # Metrics reach MLflow only up to a checkpoint: a resumed run never logs a step twice.
         self.save_checkpoint("last.pt")
+        self.last_checkpoint_step = self.progress.step
         self.tracker.flush()
+
+    def _check_divergence(self, scalars: dict[str, float]) -> None:
+        in_a_row = scalars.get(SKIPPED_IN_A_ROW, 0.0)
+        if in_a_row >= self.settings.divergence_patience:
+            losses = ", ".join(f"{k}={v}" for k, v in scalars.items() if k.startswith("loss/"))
+            kept = (
+                f"checkpoints/last.pt (step {self.last_checkpoint_step}) is the last good one"
+                if self.last_checkpoint_step is not None
+                else "no checkpoint had been written yet"
+            )
+            raise TrainingDiverged(
+                f"training diverged at step {self.progress.step}: the last {int(in_a_row)} "
+                f"updates all had a NaN/inf loss ({losses}) and were skipped; {kept}"
+            )
 
     # --- evaluation ---------------------------------------------------------------------------
     def evaluate(self) -> float:
@@ -109,6 +144,22 @@ class Trainer:
             p.best_eval = mean
             self.save_checkpoint("best.pt")
         return mean
+
+    def record_video(self) -> None:
+        """Log a gif of one greedy episode (from the first eval start state) to ``videos/``."""
+        frames: list = []
+        run_episodes(
+            self.agent,
+            self.video_env,
+            1,
+            self.settings.seed + EVAL_SEED_OFFSET,
+            on_frame=lambda _, frame: frames.append(frame),
+        )
+        fps = self.video_env.metadata.get("render_fps") or 30
+        path = self.checkpoint_dir.parent / "videos" / f"step_{self.progress.step:08d}.gif"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        write_gif(frames[:TRAINING_GIF_FRAMES], path, fps)
+        self.tracker.log_artifact(path, "videos")
 
     # --- the loop -----------------------------------------------------------------------------
     def run(self) -> dict[str, float]:
@@ -157,11 +208,21 @@ class Trainer:
                     now = time.perf_counter()
                     sps = (p.step - log_step) / (now - log_time)
                     log_step, log_time = p.step, now
-                    tracker.log_metrics(
-                        {"perf/sps": sps, **{k: v.item() for k, v in losses.items()}}, p.step
-                    )
+                    scalars = {k: v.item() for k, v in losses.items()}
+                    tracker.log_metrics({"perf/sps": sps, **scalars}, p.step)
+                    self._check_divergence(scalars)
                 if p.step % s.eval_every == 0 or p.step == s.total_steps:
-                    bar.set_postfix(eval_return=f"{self.evaluate():.1f}", refresh=False)
+                    mean = self.evaluate()
+                    bar.set_postfix(eval_return=f"{mean:.1f}", refresh=False)
+                    if (
+                        self.on_evaluation is not None
+                        and p.step < s.total_steps  # a finished run is never "stopped early"
+                        and self.on_evaluation(p.step, mean)
+                    ):
+                        self.stopped_early = True
+                        break
+                if s.video_every and p.step % s.video_every == 0:
+                    self.record_video()
                 if p.step % s.checkpoint_every == 0 and p.step < s.total_steps:  # end: below
                     self._checkpoint_and_flush()
                 if p.step % 100 == 0:

@@ -1,0 +1,107 @@
+"""Optuna sweeps through Hydra --multirun: a real tiny study, resume, pruning, divergence."""
+
+from __future__ import annotations
+
+import math
+
+import optuna
+import pytest
+from hydra.core.utils import JobReturn, JobStatus
+from omegaconf import OmegaConf
+from optuna.trial import TrialState
+
+from tests.conftest import all_runs, run_cli
+from walkers.sweeper import record_outcome
+
+#: A trial of the pendulum study at test size.
+TINY_TRIAL = [
+    "total_steps=600",
+    "eval_every=200",
+    "checkpoint_every=600",
+    "eval_episodes=1",
+    "algo.learning_starts=100",
+]
+
+
+def sweep(store, *args):
+    storage = f"sqlite:///{store['path'] / 'optuna.db'}"
+    result = run_cli(
+        [
+            "-m",
+            "sweeps=pendulum_tiny",
+            *TINY_TRIAL,
+            f"hydra.sweeper.storage={storage}",
+            *store["overrides"],
+            *args,
+        ],
+        cwd=store["path"],
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    return optuna.load_study(study_name="pendulum_tiny", storage=storage)
+
+
+def test_study_runs_resumes_and_logs_every_trial(store):
+    study = sweep(store, "hydra.sweeper.n_trials=3")
+    assert len(study.trials) == 3
+    assert all(t.state in (TrialState.COMPLETE, TrialState.PRUNED) for t in study.trials)
+    (results_file,) = store["path"].glob("multirun/*/*/optimization_results.yaml")
+    results = OmegaConf.load(results_file)
+    assert results.best_trial == study.best_trial.number
+    assert dict(results.best_params) == study.best_trial.params
+
+    runs = all_runs(store["client"])
+    (parent,) = [r for r in runs if r.data.tags.get("walkers.kind") == "study"]
+    trial_runs = [r for r in runs if r.data.tags.get("walkers.study") == "pendulum_tiny"]
+    trial_runs = [r for r in trial_runs if r.info.run_id != parent.info.run_id]
+    assert sorted(int(r.data.tags["walkers.trial"]) for r in trial_runs) == [0, 1, 2]
+    assert {r.data.tags["mlflow.parentRunId"] for r in trial_runs} == {parent.info.run_id}
+    for run in trial_runs:  # each trial's sampled values are its run's params
+        trial = study.trials[int(run.data.tags["walkers.trial"])]
+        assert float(run.data.params["algo.lr"]) == pytest.approx(trial.params["algo.lr"])
+    assert parent.data.metrics["best_value"] == pytest.approx(study.best_value)
+
+    # the same command with a larger n_trials continues the study (and its MLflow parent run)
+    resumed = sweep(store, "hydra.sweeper.n_trials=4")
+    assert len(resumed.trials) == 4
+    new = resumed.trials[3].params
+    assert all(new != t.params for t in resumed.trials[:3])  # the sampler did not restart
+    parents = [r for r in all_runs(store["client"]) if r.data.tags.get("walkers.kind") == "study"]
+    assert [p.info.run_id for p in parents] == [parent.info.run_id]
+
+
+def test_a_hopeless_trial_is_pruned_early(store):
+    # Pendulum returns are always negative: a threshold pruner at 0 stops at the first eval.
+    study = sweep(
+        store,
+        "hydra.sweeper.n_trials=1",
+        "sweep/pruner=threshold",
+        "sweep.pruner.lower=0.0",
+        "sweep.warmup_steps=0",
+    )
+    (trial,) = study.trials
+    assert trial.state == TrialState.PRUNED and trial.user_attrs["pruned_at_step"] == 200
+    (run,) = [r for r in all_runs(store["client"]) if r.data.tags.get("walkers.trial") == "0"]
+    assert run.data.tags["walkers.pruned_at_step"] == "200"
+    steps = [
+        m.step for m in store["client"].get_metric_history(run.info.run_id, "eval/return_mean")
+    ]
+    assert steps == [200]  # it stopped there instead of training to 600
+
+
+def _job_return(value=None, error: Exception | None = None) -> JobReturn:
+    ret = JobReturn()
+    ret.status = JobStatus.FAILED if error else JobStatus.COMPLETED
+    ret._return_value = error if error else value
+    return ret
+
+
+def test_diverged_trial_scores_the_worst_finite_value_and_errors_fail():
+    study = optuna.create_study(direction="maximize")
+    for value in (-100.0, -500.0):
+        study.tell(study.ask(), value)
+    diverged = study.ask()
+    assert record_outcome(study, diverged, _job_return(math.nan)) is None
+    assert study.trials[2].value == -500.0 and study.trials[2].user_attrs["diverged"]
+    crashed = study.ask()
+    error = record_outcome(study, crashed, _job_return(error=RuntimeError("boom")))
+    assert isinstance(error, RuntimeError) and study.trials[3].state == TrialState.FAIL

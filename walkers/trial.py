@@ -1,0 +1,57 @@
+"""The job side of an Optuna sweep: report evaluations to the trial, stop when it is pruned.
+
+The sweeper (:mod:`walkers.sweeper`) passes each job its study, storage and trial id as
+``sweep.*`` overrides; the pruner is the job's own ``sweep.pruner`` config (an
+``optuna.pruners`` class), so a sweep file chooses it and a command line can swap it.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import optuna
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+
+log = logging.getLogger("walkers")
+
+#: Trial user attribute the sweeper reads to tell the trial PRUNED.
+PRUNED_AT = "pruned_at_step"
+#: MLflow tag of a run its pruner stopped early (``walkers.compare`` leaves such runs out).
+PRUNED_TAG = "walkers.pruned_at_step"
+PRUNER_TARGETS = ["optuna.pruners.*"]
+
+
+def make_pruner(pruner_cfg: DictConfig | None) -> optuna.pruners.BasePruner:
+    if not pruner_cfg:
+        return optuna.pruners.NopPruner()
+    return instantiate(
+        OmegaConf.to_container(pruner_cfg, resolve=True), _execution_whitelist_=PRUNER_TARGETS
+    )
+
+
+class TrialReporter:
+    """``reporter(step, eval_return) -> True`` when the trial should stop (it was pruned)."""
+
+    def __init__(self, sweep_cfg: DictConfig):
+        study = optuna.load_study(
+            study_name=sweep_cfg.study,
+            storage=sweep_cfg.storage,
+            pruner=make_pruner(sweep_cfg.pruner),
+        )
+        self.trial = optuna.trial.Trial(study, sweep_cfg.trial_id)
+        self.pruned_at: int | None = None
+
+    def __call__(self, step: int, value: float) -> bool:
+        if not math.isfinite(value):  # a diverged policy: nothing to compare; let it run out
+            return False
+        self.trial.report(value, step)
+        if self.trial.should_prune():
+            self.trial.set_user_attr(PRUNED_AT, step)
+            self.pruned_at = step
+            log.info(
+                "trial %d pruned at step %d (eval return %.1f)", self.trial.number, step, value
+            )
+            return True
+        return False

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from tests.conftest import TINY, all_runs, compose_cfg, run_cli
+from tests.conftest import TINY, all_runs, compose_cfg, one_line_error, run_cli
+from walkers.cli import exit_on_bad_overrides
 from walkers.errors import ConfigError
 from walkers.train import train
 
@@ -46,8 +47,38 @@ def test_bad_value_is_rejected_before_any_run(store, overrides, expected):
 def test_cli_prints_one_line_and_exits_2(store, case):
     overrides, expected = CASES[case]
     result = run_cli(["env=pendulum", *TINY, *store["overrides"], *overrides], cwd=store["path"])
-    assert result.returncode == 2, result.stderr[-2000:]
-    error_lines = [line for line in result.stderr.splitlines() if line.startswith("error:")]
-    assert len(error_lines) == 1 and "Traceback" not in result.stderr, result.stderr[-2000:]
-    assert all(word in error_lines[0] for word in expected)
+    error = one_line_error(result)
+    assert all(word in error for word in expected)
     assert all_runs(store["client"]) == []
+
+
+COMPOSITION_CASES = [
+    # Hydra's own errors (unknown option or key), as one line before Hydra runs
+    (["algo=foo"], ["algo='foo'", "ddpg, reinforce, td3"]),
+    (["env=walker3d"], ["env='walker3d'", "walker2d"]),
+    (["totl_steps=5"], ["totl_steps=5", "no key 'totl_steps'"]),
+    (["algo.momentum=0.9"], ["algo.momentum=0.9", "no key"]),
+    (["-m", "algo=td3,foo", "seed=0,1"], ["algo='foo'"]),
+    (["-m", "sweeps=nope"], ["sweeps='nope'", "td3_walker2d"]),
+    (["hydra/launcher=nope"], ["hydra/launcher='nope'", "joblib"]),
+]
+
+
+@pytest.mark.parametrize("args,expected", COMPOSITION_CASES, ids=lambda c: " ".join(c))
+def test_composition_errors_are_one_line(capsys, args, expected):
+    with pytest.raises(SystemExit) as exit_:
+        exit_on_bad_overrides("train", args)
+    assert exit_.value.code == 2
+    (line,) = capsys.readouterr().err.splitlines()
+    assert line.startswith("error: ") and all(word in line for word in expected), line
+
+
+def test_good_command_lines_pass_the_composition_check():
+    exit_on_bad_overrides("train", ["--cfg", "job", "algo=ddpg", "env=pendulum"])
+    exit_on_bad_overrides("train", ["-m", "algo=td3,ddpg", "seed=range(3)", "sweeps=td3_walker2d"])
+    exit_on_bad_overrides("compare", ["env=pendulum", "algos=[td3,reinforce]"])
+
+
+def test_cli_unknown_algorithm(store):
+    error = one_line_error(run_cli(["algo=foo", *store["overrides"]], cwd=store["path"]))
+    assert "algo='foo'" in error and "ddpg, reinforce, td3" in error

@@ -64,6 +64,8 @@ RULES: list[tuple[str, callable, str]] = [
     ("eval_episodes", positive_int, "an integer > 0"),
     ("checkpoint_every", positive_int, "an integer > 0"),
     ("log_every", positive_int, "an integer > 0"),
+    ("video_every", non_negative_int, "an integer >= 0 (0: no videos)"),
+    ("divergence_patience", positive_int, "an integer > 0"),
     ("torch_threads", lambda v: v is None or positive_int(v), "null or an integer > 0"),
     ("device", lambda v: v in DEVICES, "one of " + ", ".join(DEVICES)),
     (
@@ -91,6 +93,7 @@ RULES: list[tuple[str, callable, str]] = [
     ("algo.exploration_noise", non_negative, "a number >= 0"),
     ("env.max_episode_steps", lambda v: v is None or positive_int(v), "null or an integer > 0"),
     ("env.threshold", _number, "a number"),
+    ("env.learning_starts", non_negative_int, "an integer >= 0"),
 ]
 
 _MISSING = object()

@@ -17,6 +17,7 @@ import torch
 from torch.nn import functional as F
 
 from walkers.agents.base import Agent, Transition, resolve_device
+from walkers.agents.health import NonFiniteGuard
 from walkers.buffers import ReplayBuffer
 from walkers.nn import Actor, make_critic, soft_update
 
@@ -137,6 +138,7 @@ class ActorCritic(Agent):
         self.buffer = ReplayBuffer(buffer_size, obs_dim, act_dim, self.device, seed=seed)
         self.steps = 0  # transitions observed
         self.num_updates = 0  # critic updates done
+        self.guard = NonFiniteGuard(self.device)
 
     # --- acting -------------------------------------------------------------------------------
     def act(self, obs: np.ndarray, explore: bool) -> np.ndarray:
@@ -177,7 +179,11 @@ class ActorCritic(Agent):
         critic_loss = F.mse_loss(q, target.expand_as(q), reduction="none").mean(dim=1).sum()
         self.critic_optimizer.zero_grad(set_to_none=True)
         critic_loss.backward()
+        # NaN/inf guard without a host sync: fused Adam skips its step when found_inf is 1.
+        bad = self.guard.is_bad(critic_loss)
+        self.critic_optimizer.found_inf = bad
         self.critic_optimizer.step()
+        self.guard.record(bad)
         metrics = {"loss/critic": critic_loss.detach(), "train/q_mean": q.detach().mean()}
 
         # Delayed policy update: maximize Q_1(s, pi(s)), then move the targets.
@@ -185,11 +191,12 @@ class ActorCritic(Agent):
             actor_loss = -self.critic(b.obs, self.actor(b.obs), members=slice(0, 1)).mean()
             self.actor_optimizer.zero_grad(set_to_none=True)
             actor_loss.backward(inputs=list(self.actor.parameters()))  # no critic weight grads
+            self.actor_optimizer.found_inf = torch.maximum(bad, self.guard.is_bad(actor_loss))
             self.actor_optimizer.step()
             soft_update(self.critic_target, self.critic, self.tau)
             soft_update(self.actor_target, self.actor, self.tau)
             metrics["loss/actor"] = actor_loss.detach()
-        return metrics
+        return metrics | self.guard.metrics()
 
     # --- checkpoints --------------------------------------------------------------------------
     def state_dict(self, with_buffer: bool = False) -> dict:
@@ -205,6 +212,7 @@ class ActorCritic(Agent):
             "rng": self.rng.bit_generator.state,
             "noise": self.noise.state_dict(),
             "buffer": self.buffer.state_dict(with_data=with_buffer),
+            "guard": self.guard.state_dict(),
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -216,3 +224,5 @@ class ActorCritic(Agent):
         self.rng.bit_generator.state = state["rng"]
         self.noise.load_state_dict(state["noise"])
         self.buffer.load_state_dict(state["buffer"])
+        if "guard" in state:
+            self.guard.load_state_dict(state["guard"])

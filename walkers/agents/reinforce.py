@@ -33,6 +33,7 @@ from torch import nn
 from torch.distributions import Normal
 
 from walkers.agents.base import Agent, Transition, resolve_device
+from walkers.agents.health import NonFiniteGuard
 from walkers.buffers import EpisodeBuffer
 from walkers.nn import mlp
 
@@ -102,7 +103,7 @@ class Reinforce(Agent):
             )
         self.episodes = EpisodeBuffer()
         self.steps = 0
-        self.skipped_updates = 0
+        self.guard = NonFiniteGuard(self.device)
         self.generator = torch.Generator(device=self.device).manual_seed(seed)
 
     # --- acting -------------------------------------------------------------------------------
@@ -157,11 +158,12 @@ class Reinforce(Agent):
         grad_norm = nn.utils.clip_grad_norm_(
             self.policy.parameters(), self.max_grad_norm or float("inf")
         )
-        if torch.isfinite(loss) and torch.isfinite(grad_norm):
+        bad = self.guard.is_bad(loss, grad_norm)
+        self.guard.record(bad)
+        if not bad:
             self.optimizer.step()
         else:  # NaN/inf guard: drop this update rather than poison the weights
             self.optimizer.zero_grad(set_to_none=True)
-            self.skipped_updates += 1
         if self.value is not None:
             self.value_optimizer.zero_grad(set_to_none=True)
             value_loss.backward()
@@ -172,8 +174,8 @@ class Reinforce(Agent):
                 "train/entropy": entropy.detach(),
                 "train/grad_norm": grad_norm.detach(),
                 "train/log_std_mean": self.policy.log_std.detach().mean(),
-                "health/skipped_updates": torch.tensor(float(self.skipped_updates)),
             }
+            | self.guard.metrics()
         )
         return metrics
 
@@ -183,7 +185,7 @@ class Reinforce(Agent):
             "policy": self.policy.state_dict(),
             "optimizer": self.optimizer.state_dict(),
             "steps": self.steps,
-            "skipped_updates": self.skipped_updates,
+            "guard": self.guard.state_dict(),
             "generator": self.generator.get_state(),
         }
         if self.value is not None:
@@ -194,7 +196,8 @@ class Reinforce(Agent):
     def load_state_dict(self, state: dict) -> None:
         self.policy.load_state_dict(state["policy"])
         self.optimizer.load_state_dict(state["optimizer"])
-        self.steps, self.skipped_updates = state["steps"], state["skipped_updates"]
+        self.steps = state["steps"]
+        self.guard.load_state_dict(state["guard"])
         self.generator.set_state(state["generator"])
         if self.value is not None:
             self.value.load_state_dict(state["value"])

@@ -1,0 +1,101 @@
+"""Command-line overrides checked before Hydra runs: its composition errors as one line, exit 2.
+
+Hydra reports an unknown option (``algo=foo``) or key (``totl_steps=5``) as a multi-line message
+with the config search path and exits 1. Every walkers command composes its config here first
+and turns those errors into the project's form: ``error: <key>=<value> ...`` on one line, exit 2.
+"""
+
+from __future__ import annotations
+
+import sys
+
+from hydra import compose, initialize_config_dir
+from hydra.core.override_parser.overrides_parser import OverridesParser
+from hydra.errors import ConfigCompositionException, MissingConfigException, OverrideParseException
+
+from walkers import PROJECT_ROOT
+
+CONF_DIR = str(PROJECT_ROOT / "conf")
+#: Sweep values Hydra can enumerate (a,b,c / range()); Optuna's interval() etc. are the sweeper's.
+_ENUMERABLE = ("ChoiceSweep", "RangeSweep")
+
+
+#: Hydra flags followed by a value that is not an override.
+_FLAGS_WITH_VALUE = {
+    "--cfg",
+    "-c",
+    "--package",
+    "-p",
+    "--config-path",
+    "-cp",
+    "--config-name",
+    "-cn",
+    "--config-dir",
+    "-cd",
+    "--experimental-rerun",
+}
+
+
+def overrides_of(args: list[str]) -> list[str]:
+    """The overrides among a command line's arguments (flags and their values dropped)."""
+    overrides, skip = [], False
+    for arg in args:
+        if skip:
+            skip = False
+        elif arg in _FLAGS_WITH_VALUE:
+            skip = True
+        elif not arg.startswith("-"):
+            overrides.append(arg)
+    return overrides
+
+
+def _single_values(args: list[str]) -> list[list[str]]:
+    """Override lists to compose: multirun sweeps become one list per swept value."""
+    overrides = overrides_of(args)
+    parsed = OverridesParser.create().parse_overrides(overrides)
+    base = []
+    for override in parsed:
+        if override.is_sweep_override():
+            if type(override.value()).__name__ not in _ENUMERABLE:
+                continue  # an Optuna search space: checked by the sweeper
+            values = list(override.sweep_string_iterator())
+            base.append((override, values))
+        else:
+            base.append((override, None))
+    first = [o.input_line if v is None else f"{o.get_key_element()}={v[0]}" for o, v in base]
+    combos = [first]
+    for i, (override, values) in enumerate(base):
+        for value in (values or [])[1:]:
+            combos.append(first[:i] + [f"{override.get_key_element()}={value}"] + first[i + 1 :])
+    return combos
+
+
+def _one_line(error: Exception, overrides: list[str]) -> str:
+    if isinstance(error, MissingConfigException) and error.missing_cfg_file:
+        group, _, name = error.missing_cfg_file.rpartition("/")
+        options = ", ".join(error.options or [])
+        return f"{group}={name!r} is not allowed: must be one of {options}"
+    text = str(error)
+    if text.startswith("Could not override '"):
+        key = text.split("'")[1]
+        given = next((o for o in overrides if o.split("=", 1)[0].lstrip("+~") == key), key)
+        return (
+            f"{given}: there is no key {key!r} in the config (see `--cfg job` for the keys; "
+            f"prefix + to add a new one)"
+        )
+    return text.splitlines()[0]
+
+
+def exit_on_bad_overrides(config_name: str, args: list[str] | None = None) -> None:
+    """Compose ``config_name`` with the command line's overrides; on error: one line, exit 2."""
+    args = sys.argv[1:] if args is None else args
+    if any(a in ("--help", "-h", "--hydra-help", "--info", "-i") for a in args):
+        return
+    try:
+        combos = _single_values(args)
+        with initialize_config_dir(config_dir=CONF_DIR):
+            for overrides in combos:
+                compose(config_name=config_name, overrides=overrides)
+    except (MissingConfigException, ConfigCompositionException, OverrideParseException) as e:
+        print(f"error: {_one_line(e, args)}", file=sys.stderr)
+        sys.exit(2)

@@ -23,9 +23,9 @@ install: $(STAMP)  ## create .venv and install walkers with pinned dependencies
 train: $(STAMP)  ## the main job: TD3 on Walker2d-v5, 1M steps, logged to ./mlflow.db (extra overrides: ARGS="seed=3 ...")
 	$(PY) -m walkers.train $(ARGS)
 
-ab: $(STAMP)  ## a small A/B end to end in minutes: REINFORCE vs DDPG vs TD3 on Pendulum, 3 seeds, then a report
+ab: $(STAMP)  ## a small A/B end to end in minutes: REINFORCE vs TD3 on Pendulum, 5 seeds each, then a report
 	$(PY) -m walkers.train -m experiment=ab_pendulum hydra/launcher=joblib $(ARGS)
-	$(PY) -m walkers.compare env=pendulum algos=[reinforce,ddpg,td3] tracking.experiment=ab_pendulum
+	$(PY) -m walkers.compare env=pendulum algos=[reinforce,td3] tracking.experiment=ab_pendulum
 
 compare: $(STAMP)  ## A/B report from finished runs (ARGS="env=walker2d algos=[reinforce,td3] tracking.experiment=...")
 	$(PY) -m walkers.compare $(ARGS)

@@ -96,7 +96,7 @@ def test_compare_reports_every_seed_and_leaves_out_the_rest(ab_store, tmp_path):
     assert "Hopper-v5: 1" in left_out and "RUNNING" in left_out
 
     report = (out / "report.md").read_text()
-    assert "reinforce vs td3 on Pendulum-v1" in report and "P(reinforce > td3)" in report
+    assert "reinforce vs td3 on Pendulum-v1" in report and "> reinforce)" in report
     assert "## Left out" in report
     for png in ("learning_curves.png", "scores.png"):
         assert (out / png).read_bytes()[:4] == b"\x89PNG"
@@ -164,11 +164,14 @@ def test_verdict_follows_the_evidence():
         )
 
     clear = run([90, 95, 100, 105, 110], [1, 2, 3, 4, 5])
-    assert "td3 learns better than reinforce" in clear
-    assert "td3 learns faster than reinforce" in clear
+    assert "td3 vs reinforce: td3 learns better (final return: P(td3 > reinforce) = 1" in clear
+    assert "; td3 learns faster (AUC" in clear
     assert "td3 5/5, reinforce 0/5" in clear
+    reversed_ = run([1, 2, 3, 4, 5], [90, 95, 100, 105, 110])  # named the other way round
+    assert "reinforce vs td3: reinforce learns better" in reversed_
     overlapping = run([1, 3, 5, 7, 9], [2, 4, 6, 8, 10])
-    assert "not reliably different on final return" in overlapping
-    # Perfect separation with 3 seeds each is not enough: Mann-Whitney p = 0.1
+    assert "no reliable difference in final return" in overlapping
+    # Perfect separation with 3 seeds each is not enough: the smallest Mann-Whitney p is 0.1
     few = run([90, 95, 100], [1, 2, 3])
-    assert "not reliably different on final return" in few
+    assert "no reliable difference in final return" in few
+    assert "smallest possible p is 0.1" in few

@@ -90,6 +90,11 @@ class PairResult:
     p_improvement: tuple[float, float, float]
     p_value: float
 
+    def flipped(self) -> PairResult:
+        """B vs A: P(B > A) = 1 - P(A > B), the interval mirrored; the p-value is symmetric."""
+        p, low, high = self.p_improvement
+        return PairResult(self.b, self.a, self.quantity, (1 - p, 1 - high, 1 - low), self.p_value)
+
     def decisive(self, confidence: float) -> int:
         """+1 if A is reliably better, -1 if B is, 0 if the data can't tell."""
         _, low, high = self.p_improvement

@@ -19,7 +19,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 from walkers import stats  # noqa: E402
 
 if TYPE_CHECKING:
-    from walkers.compare import Comparison
+    from walkers.compare import Comparison, PairResult
 
 QUANTITY_NAMES = {"score": "final return", "auc": "AUC (rate of learning)"}
 
@@ -40,30 +40,44 @@ def _steps(x: float | None) -> str:
     return "not reached" if x is None or not math.isfinite(x) else f"{x:,.0f}"
 
 
+def _clause(pair: PairResult, confidence: float) -> str:
+    """``pair`` oriented so that its ``a`` looks better: what the evidence says, with it."""
+    name = QUANTITY_NAMES[pair.quantity]
+    evidence = (
+        f"P({pair.a} > {pair.b}) = {_interval(*pair.p_improvement)}, "
+        f"Mann-Whitney p = {pair.p_value:.2g}"
+    )
+    if pair.decisive(confidence) > 0:
+        word = "learns better" if pair.quantity == "score" else "learns faster"
+        return f"{pair.a} {word} ({name}: {evidence})"
+    return f"no reliable difference in {name} ({evidence})"
+
+
 def verdict(c: Comparison) -> str:
     """One paragraph: which algorithm learns better and faster, and how sure we can be."""
     level = f"{c.confidence:.0%}"
     ranked = sorted(c.algos, key=lambda r: -r.iqm[0])
-    seeds = ", ".join(f"{r.algo} {len(r.runs)}" for r in c.algos)
+    rank = {r.algo: i for i, r in enumerate(ranked)}
+    seeds = {r.algo: len(r.runs) for r in c.algos}
     budget = f"{c.budget:,} env steps" if c.budget else "their budget"
-    lines = [f"On {c.env_id} ({budget}; seeds: {seeds}), ranked by IQM of {c.score}:"]
-    lines.append(", ".join(f"{r.algo} {_interval(*r.iqm)}" for r in ranked) + f" ({level} CIs).")
-    for pair in c.pairs:
-        better = pair.decisive(c.confidence)
-        name = QUANTITY_NAMES[pair.quantity]
-        evidence = (
-            f"P({pair.a} > {pair.b}) = {_interval(*pair.p_improvement)}, "
-            f"Mann-Whitney p = {pair.p_value:.3g}"
-        )
-        if better:
-            winner, loser = (pair.a, pair.b) if better > 0 else (pair.b, pair.a)
-            word = "learns better than" if pair.quantity == "score" else "learns faster than"
-            lines.append(f"{winner} {word} {loser} on {name} ({evidence}).")
-        else:
-            lines.append(
-                f"{pair.a} and {pair.b} are not reliably different on {name} ({evidence}); "
-                "more seeds would be needed to separate them."
+    lines = [
+        f"On {c.env_id} ({budget}; seeds: {', '.join(f'{a} {n}' for a, n in seeds.items())}),"
+        f" ranked by the IQM of {c.score}: "
+        + ", ".join(f"{r.algo} {_interval(*r.iqm)}" for r in ranked)
+        + f" ({level} CIs)."
+    ]
+    pairs = [p if rank[p.a] < rank[p.b] else p.flipped() for p in c.pairs]
+    for a, b in {(p.a, p.b): None for p in pairs}:
+        clauses = [_clause(p, c.confidence) for p in pairs if (p.a, p.b) == (a, b)]
+        line = f"{a} vs {b}: {'; '.join(clauses)}."
+        smallest_p = 2 / math.comb(seeds[a] + seeds[b], seeds[a])
+        if smallest_p >= 1 - c.confidence:
+            line += (
+                f" With {seeds[a]} and {seeds[b]} seeds no difference can reach p < "
+                f"{1 - c.confidence:.2g} (the smallest possible p is {smallest_p:.2g}): "
+                "run more seeds."
             )
+        lines.append(line)
     reached = [f"{r.algo} {r.as_dict()['threshold_reached']}/{len(r.runs)}" for r in c.algos]
     lines.append(f"Seeds reaching the threshold {_num(c.threshold)}: {', '.join(reached)}.")
     return " ".join(lines)

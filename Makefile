@@ -36,6 +36,10 @@ test: $(STAMP)  ## run the test suite (real tiny trainings; a few minutes on 2 c
 bench: $(STAMP)  ## benchmarks: the TD3 update vs a plain eager implementation, side by side
 	$(PY) benchmarks/bench_update.py $(ARGS)
 
+bench-throughput: $(STAMP)  ## env steps/s of walkers TD3/DDPG/REINFORCE vs Stable-Baselines3 on Walker2d (installs SB3)
+	$(VENV)/bin/pip install --quiet -e '.[bench]'
+	$(PY) benchmarks/bench_throughput.py $(ARGS)
+
 lint: $(STAMP)  ## ruff: style and common bugs
 	$(VENV)/bin/ruff check walkers tests $(wildcard benchmarks)
 
@@ -46,4 +50,4 @@ clean:  ## remove run outputs (mlflow.db, mlartifacts/, outputs/, multirun/, .wa
 	rm -rf mlflow.db mlruns mlartifacts outputs multirun .walkers reports .pytest_cache .ruff_cache
 	find . -name __pycache__ -type d -prune -not -path './$(VENV)/*' -exec rm -rf {} +
 
-.PHONY: help install train ab compare test bench lint ui clean
+.PHONY: help install train ab compare test bench bench-throughput lint ui clean

@@ -1,0 +1,168 @@
+"""Env steps per second in the learning phase: walkers vs Stable-Baselines3, side by side.
+
+    make bench-throughput          # or: .venv/bin/python benchmarks/bench_throughput.py --reps 4
+
+Walker2d-v5, reference hyperparameters for all (256-256, batch 256, one gradient step per env
+step, lr 3e-4, gamma 0.99, tau 0.005). Each contender first runs past its warm-up untimed, then
+the contenders take turns, ``--steps`` env steps a round, so machine noise hits all alike. The
+table gives the median env steps/s and the ratio to SB3's TD3 (above 1: faster). Then: the TD3
+update alone, an estimate of its FLOPs, this machine's fp32 matmul rate, and the memory of a full
+1M-transition replay buffer. SB3 is a benchmark-only dependency (``pip install -e '.[bench]'``);
+without it the SB3 rows are skipped. A benchmark, not a test: nothing here asserts on time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import gymnasium as gym
+import torch
+
+from walkers.agents.base import Transition
+from walkers.agents.ddpg import DDPG
+from walkers.agents.reinforce import Reinforce
+from walkers.agents.td3 import TD3
+from walkers.buffers import ReplayBuffer
+from walkers.envs import env_spaces
+
+ENV_ID, HIDDEN, BATCH, WARMUP = "Walker2d-v5", 256, 256, 1_000
+
+
+class WalkersLoop:
+    """The trainer's inner loop (act -> step -> observe -> update) around one walkers agent."""
+
+    def __init__(self, agent_cls, **kwargs):
+        self.env = gym.make(ENV_ID)
+        self.agent = agent_cls(**env_spaces(self.env), seed=0, **kwargs)
+        self.obs, _ = self.env.reset(seed=0)
+
+    def run(self, steps: int) -> None:
+        agent, env, obs = self.agent, self.env, self.obs
+        for _ in range(steps):
+            action = agent.act(obs, explore=True)
+            next_obs, reward, terminated, truncated, _ = env.step(action)
+            agent.observe(Transition(obs, action, float(reward), next_obs, terminated, truncated))
+            agent.update()
+            obs = next_obs if not (terminated or truncated) else env.reset()[0]
+        self.obs = obs
+
+
+class SB3Loop:
+    """Stable-Baselines3's own ``learn`` loop, continued in chunks."""
+
+    def __init__(self, algo_name: str):
+        import stable_baselines3 as sb3
+
+        cls = getattr(sb3, algo_name)
+        self.model = cls(
+            "MlpPolicy",
+            gym.make(ENV_ID),
+            learning_rate=3e-4,
+            buffer_size=1_000_000,
+            learning_starts=WARMUP,
+            batch_size=BATCH,
+            tau=0.005,
+            gamma=0.99,
+            train_freq=1,
+            gradient_steps=1,
+            policy_kwargs={"net_arch": [HIDDEN, HIDDEN]},
+            seed=0,
+            device="cpu",
+        )
+
+    def run(self, steps: int) -> None:
+        self.model.learn(total_timesteps=steps, reset_num_timesteps=False)
+
+
+def contenders() -> dict:
+    common = {"lr": 3e-4, "batch_size": BATCH, "learning_starts": WARMUP}
+    loops = {
+        "walkers TD3": lambda: WalkersLoop(TD3, hidden_sizes=[HIDDEN, HIDDEN], **common),
+        "walkers DDPG": lambda: WalkersLoop(DDPG, hidden_sizes=[HIDDEN, HIDDEN], **common),
+        "walkers REINFORCE": lambda: WalkersLoop(Reinforce, hidden_sizes=[HIDDEN, HIDDEN]),
+    }
+    try:
+        import stable_baselines3  # noqa: F401
+
+        loops |= {"SB3 TD3": lambda: SB3Loop("TD3"), "SB3 DDPG": lambda: SB3Loop("DDPG")}
+    except ImportError:
+        print("stable-baselines3 not installed: SB3 rows skipped (pip install -e '.[bench]')")
+    return {name: make() for name, make in loops.items()}
+
+
+def matmul_gflops(n: int = 256, reps: int = 200) -> float:
+    a, b = torch.randn(n, n), torch.randn(n, n)
+    for _ in range(10):
+        a @ b
+    start = time.perf_counter()
+    for _ in range(reps):
+        a @ b
+    return 2 * n**3 * reps / (time.perf_counter() - start) / 1e9
+
+
+def td3_update_gflop(obs: int, act: int, hidden: int = HIDDEN, batch: int = BATCH) -> float:
+    """Matmul FLOPs of one TD3 update (policy delay 2 averaged), backward = 2x forward."""
+
+    def mlp(i, o):  # forward FLOPs of an i -> hidden -> hidden -> o MLP on a batch
+        return 2 * batch * (i * hidden + hidden * hidden + hidden * o)
+
+    actor, critic = mlp(obs, act), mlp(obs + act, 1)
+    target = actor + 2 * critic  # target actor + two target critics, forward only
+    critics = 2 * critic * 3  # two critics, forward + backward
+    actor_step = (actor + critic) * 3 / 2  # every 2nd update: actor through critic 1
+    return (target + critics + actor_step) / 1e9
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--reps", type=int, default=4, help="alternating rounds")
+    parser.add_argument("--steps", type=int, default=1_000, help="env steps per round")
+    args = parser.parse_args()
+    loops = contenders()
+    for loop in loops.values():
+        loop.run(WARMUP + 100)  # past the warm-up: every timed step learns
+    sps = {name: [] for name in loops}
+    for _ in range(args.reps):
+        for name, loop in loops.items():
+            start = time.perf_counter()
+            loop.run(args.steps)
+            sps[name].append(args.steps / (time.perf_counter() - start))
+    base = statistics.median(sps["SB3 TD3"]) if "SB3 TD3" in sps else None
+    print(
+        f"\n{ENV_ID}, learning phase, {HIDDEN}-{HIDDEN}, batch {BATCH}, 1 gradient step per env "
+        f"step, {torch.get_num_threads()} threads, {args.reps} rounds x {args.steps} steps"
+    )
+    print(f"| {'implementation':<18} | {'env steps/s':>11} | {'min':>6} | {'vs SB3 TD3':>10} |")
+    print(f"|{'-' * 20}|{'-' * 13}|{'-' * 8}|{'-' * 12}|")
+    for name, values in sps.items():
+        median = statistics.median(values)
+        ratio = f"{median / base:.2f}" if base else "n/a"
+        print(f"| {name:<18} | {median:>11.1f} | {min(values):>6.1f} | {ratio:>10} |")
+
+    td3 = loops["walkers TD3"].agent
+    spaces = env_spaces(loops["walkers TD3"].env)
+    obs_dim, act_dim = spaces["obs_dim"], len(spaces["action_low"])
+    for _ in range(10):
+        td3.update()
+    start = time.perf_counter()
+    for _ in range(200):
+        td3.update()
+    update_ms = (time.perf_counter() - start) / 200 * 1e3
+    gflop, rate = td3_update_gflop(obs_dim, act_dim), matmul_gflops()
+    print(f"\nTD3 update alone: {update_ms:.2f} ms; its matmuls: {gflop * 1e3:.1f} MFLOP, i.e.")
+    print(
+        f"{gflop / rate * 1e3:.2f} ms at this machine's {rate:.0f} GFLOP/s (fp32 256x256x256): "
+        f"{gflop / rate * 1e3 / update_ms:.0%} of the update is matmul at peak rate."
+    )
+    buffer = ReplayBuffer(1_000_000, obs_dim, act_dim, torch.device("cpu"))
+    nbytes = sum(
+        t.numel() * t.element_size()
+        for t in (buffer.obs, buffer.action, buffer.reward, buffer.next_obs, buffer.terminated)
+    )
+    print(f"Replay buffer, 1M {ENV_ID} transitions, float32: {nbytes / 1e6:.0f} MB preallocated.")
+
+
+if __name__ == "__main__":
+    main()

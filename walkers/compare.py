@@ -26,7 +26,7 @@ from omegaconf import DictConfig
 from walkers import stats, tracking
 from walkers.cli import exit_on_bad_overrides
 from walkers.errors import ConfigError
-from walkers.report import write_report
+from walkers.report import verdict, write_report
 from walkers.trial import PRUNED_TAG
 
 log = logging.getLogger("walkers")
@@ -264,11 +264,6 @@ def compare_groups(
     )
 
 
-def curves_on_grid(result: AlgoResult, grid: np.ndarray) -> np.ndarray:
-    """Seeds x grid matrix of eval returns (runs evaluated at other steps are interpolated)."""
-    return np.stack([np.interp(grid, r.steps, r.returns) for r in result.runs])
-
-
 # --- the command ----------------------------------------------------------------------------
 
 
@@ -327,8 +322,6 @@ def compare(cfg: DictConfig) -> tuple[Comparison, Path, str | None]:
 
 def _log_report(client, cfg: DictConfig, comparison: Comparison, files: list[Path]) -> str:
     """The report as an MLflow run of its own, beside the runs it compares."""
-    from walkers.report import verdict
-
     names = [r.algo for r in comparison.algos]
     tracker = tracking.Tracker.start(
         client,
@@ -377,8 +370,6 @@ def main(cfg: DictConfig) -> None:
     except ConfigError as e:
         print(f"error: {e}", file=sys.stderr)
         sys.exit(2)
-    from walkers.report import verdict
-
     print(verdict(comparison))
     print(f"report: {out / 'report.md'}")
     if url:

@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import matplotlib
+import numpy as np
 
 matplotlib.use("Agg")  # files only, never a window
 import matplotlib.pyplot as plt  # noqa: E402
@@ -19,7 +20,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 from walkers import stats  # noqa: E402
 
 if TYPE_CHECKING:
-    from walkers.compare import Comparison, PairResult
+    from walkers.compare import AlgoResult, Comparison, PairResult
 
 QUANTITY_NAMES = {"score": "final return", "auc": "AUC (rate of learning)"}
 
@@ -83,9 +84,12 @@ def verdict(c: Comparison) -> str:
     return " ".join(lines)
 
 
-def plot_learning_curves(c: Comparison, path: Path) -> Path:
-    from walkers.compare import curves_on_grid
+def curves_on_grid(result: AlgoResult, grid: np.ndarray) -> np.ndarray:
+    """Seeds x grid matrix of eval returns (runs evaluated at other steps are interpolated)."""
+    return np.stack([np.interp(grid, r.steps, r.returns) for r in result.runs])
 
+
+def plot_learning_curves(c: Comparison, path: Path) -> Path:
     fig, ax = plt.subplots(figsize=(7, 4.5))
     for result in c.algos:
         mean, low, high = stats.mean_band(curves_on_grid(result, c.grid), c.confidence)

@@ -10,7 +10,7 @@ MLFLOW_PORT ?= 5000
 ARGS ?=
 
 help:  ## list the make targets
-	@grep -hE '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk 'BEGIN {FS = ":.*## "}; {printf "  make %-10s %s\n", $$1, $$2}'
+	@grep -hE '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk 'BEGIN {FS = ":.*## "}; {printf "  make %-16s %s\n", $$1, $$2}'
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -30,7 +30,7 @@ ab: $(STAMP)  ## a small A/B end to end in minutes: REINFORCE vs TD3 on Pendulum
 compare: $(STAMP)  ## A/B report from finished runs (ARGS="env=walker2d algos=[reinforce,td3] tracking.experiment=...")
 	$(PY) -m walkers.compare $(ARGS)
 
-test: $(STAMP)  ## run the test suite (real tiny trainings; a few minutes on 2 cores)
+test: $(STAMP)  ## run the test suite (real tiny trainings, sweeps, reports; ~7 minutes on 2 cores)
 	$(PY) -m pytest -q $(ARGS)
 
 bench: $(STAMP)  ## benchmarks: the TD3 update vs a plain eager implementation, side by side
@@ -43,10 +43,10 @@ bench-throughput: $(STAMP)  ## env steps/s of walkers TD3/DDPG/REINFORCE vs Stab
 lint: $(STAMP)  ## ruff: style and common bugs
 	$(VENV)/bin/ruff check walkers tests $(wildcard benchmarks)
 
-ui: $(STAMP)  ## MLflow UI on the local store: http://127.0.0.1:$(MLFLOW_PORT)
+ui: $(STAMP)  ## MLflow UI on the local store: http://127.0.0.1:5000 (MLFLOW_PORT=... to change)
 	$(VENV)/bin/mlflow ui --backend-store-uri sqlite:///mlflow.db --port $(MLFLOW_PORT)
 
-clean:  ## remove run outputs (mlflow.db, mlartifacts/, outputs/, multirun/, .walkers/) and caches; keeps .venv
+clean:  ## remove run outputs (mlflow.db, mlartifacts/, outputs/, multirun/, .walkers/, reports/) and caches; keeps .venv and optuna.db
 	rm -rf mlflow.db mlruns mlartifacts outputs multirun .walkers reports .pytest_cache .ruff_cache
 	find . -name __pycache__ -type d -prune -not -path './$(VENV)/*' -exec rm -rf {} +
 

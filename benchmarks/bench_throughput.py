@@ -14,11 +14,11 @@ without it the SB3 rows are skipped. A benchmark, not a test: nothing here asser
 from __future__ import annotations
 
 import argparse
-import statistics
 import time
 
 import gymnasium as gym
 import torch
+from rounds import alternate, print_table
 
 from walkers.agents.base import Transition
 from walkers.agents.ddpg import DDPG
@@ -123,23 +123,18 @@ def main():
     loops = contenders()
     for loop in loops.values():
         loop.run(WARMUP + 100)  # past the warm-up: every timed step learns
-    sps = {name: [] for name in loops}
-    for _ in range(args.reps):
-        for name, loop in loops.items():
-            start = time.perf_counter()
-            loop.run(args.steps)
-            sps[name].append(args.steps / (time.perf_counter() - start))
-    base = statistics.median(sps["SB3 TD3"]) if "SB3 TD3" in sps else None
+
+    def steps_per_second(loop) -> float:
+        start = time.perf_counter()
+        loop.run(args.steps)
+        return args.steps / (time.perf_counter() - start)
+
+    sps = alternate(loops, steps_per_second, args.reps)
     print(
         f"\n{ENV_ID}, learning phase, {HIDDEN}-{HIDDEN}, batch {BATCH}, 1 gradient step per env "
         f"step, {torch.get_num_threads()} threads, {args.reps} rounds x {args.steps} steps"
     )
-    print(f"| {'implementation':<18} | {'env steps/s':>11} | {'min':>6} | {'vs SB3 TD3':>10} |")
-    print(f"|{'-' * 20}|{'-' * 13}|{'-' * 8}|{'-' * 12}|")
-    for name, values in sps.items():
-        median = statistics.median(values)
-        ratio = f"{median / base:.2f}" if base else "n/a"
-        print(f"| {name:<18} | {median:>11.1f} | {min(values):>6.1f} | {ratio:>10} |")
+    print_table(sps, "env steps/s", baseline="SB3 TD3")
 
     td3 = loops["walkers TD3"].agent
     spaces = env_spaces(loops["walkers TD3"].env)

@@ -12,11 +12,11 @@ from __future__ import annotations
 
 import argparse
 import copy
-import statistics
 import time
 
 import numpy as np
 import torch
+from rounds import alternate, print_table
 from torch import nn
 from torch.nn import functional as F
 
@@ -106,20 +106,12 @@ def main():
     args = parser.parse_args()
     torch.manual_seed(0)
     contenders = {"plain eager TD3": PlainTD3Update(), "walkers TD3": walkers_update()}
-    times = {name: [] for name in contenders}
-    for _ in range(args.reps):
-        for name, fn in contenders.items():
-            times[name].append(time_ms(fn, args.updates))
-    base = statistics.median(times["plain eager TD3"])
+    times = alternate(contenders, lambda fn: time_ms(fn, args.updates), args.reps)
     print(
         f"TD3 update, Walker2d shapes, batch {BATCH}, {torch.get_num_threads()} threads, "
         f"{args.reps} rounds x {args.updates} updates"
     )
-    print(f"| {'implementation':<18} | {'median ms':>9} | {'min ms':>7} | {'ratio':>5} |")
-    print(f"|{'-' * 20}|{'-' * 11}|{'-' * 9}|{'-' * 7}|")
-    for name, values in times.items():
-        median = statistics.median(values)
-        print(f"| {name:<18} | {median:>9.2f} | {min(values):>7.2f} | {median / base:>5.2f} |")
+    print_table(times, "median ms", baseline="plain eager TD3")
 
 
 if __name__ == "__main__":

@@ -16,14 +16,13 @@ import sys
 from pathlib import Path
 
 import hydra
-import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from walkers import checkpoints, tracking
 from walkers.cli import exit_on_bad_overrides
 from walkers.envs import env_spaces, make_env
 from walkers.errors import CheckpointError, ConfigError
-from walkers.rollout import run_episodes
+from walkers.rollout import record_episodes
 from walkers.trainer import EVAL_SEED_OFFSET
 from walkers.video import write_videos
 
@@ -56,15 +55,7 @@ def fetch_checkpoint(cfg: DictConfig, client) -> Path:
                 "or the path of an existing .pt file"
             )
         return path
-    dst = Path(cfg.work_dir) / "runs" / cfg.run_id / "download"
-    try:
-        return Path(
-            client.download_artifacts(cfg.run_id, f"checkpoints/{cfg.checkpoint}.pt", str(dst))
-        )
-    except Exception:
-        raise CheckpointError(
-            f"run {cfg.run_id} has no checkpoints/{cfg.checkpoint}.pt artifact"
-        ) from None
+    return tracking.download_checkpoint(client, cfg.run_id, f"{cfg.checkpoint}.pt", cfg.work_dir)
 
 
 def evaluate(cfg: DictConfig) -> dict:
@@ -84,17 +75,10 @@ def evaluate(cfg: DictConfig) -> dict:
         agent = build_agent(run_cfg, env_spaces(env))
         agent.load_state_dict(state["agent"])
         seed = cfg.seed if cfg.seed is not None else run_cfg.seed + EVAL_SEED_OFFSET
-        frames: list[np.ndarray] = []
         record = cfg.video and cfg.render == "rgb_array"
-        returns = run_episodes(
-            agent,
-            env,
-            cfg.episodes,
-            seed,
-            on_frame=(lambda _, frame: frames.append(frame)) if record else None,
-            render_episodes=cfg.video_episodes,
+        returns, frames, fps = record_episodes(
+            agent, env, cfg.episodes, seed, render_episodes=cfg.video_episodes if record else 0
         )
-        fps = env.metadata.get("render_fps") or 30
     finally:
         env.close()
     name = cfg.run_id or Path(cfg.checkpoint).stem

@@ -36,3 +36,14 @@ def run_episodes(
             returns[i] += reward
             done = terminated or truncated
     return returns
+
+
+def record_episodes(
+    agent: Agent, env: gym.Env, episodes: int, seed: int, render_episodes: int = 1
+) -> tuple[np.ndarray, list[np.ndarray], float]:
+    """:func:`run_episodes` keeping the first ``render_episodes``: (returns, frames, fps)."""
+    frames: list[np.ndarray] = []
+    returns = run_episodes(
+        agent, env, episodes, seed, lambda _, frame: frames.append(frame), render_episodes
+    )
+    return returns, frames, env.metadata.get("render_fps") or 30

@@ -50,8 +50,8 @@ def absolute_storage(storage: str | None) -> str | None:
 
 def worst_finite(study: optuna.Study) -> float:
     """The worst score among completed trials (the floor of the range if there is none)."""
-    values = [t.value for t in study.get_trials(states=(TrialState.COMPLETE,)) if t.value]
-    values = [v for v in values if math.isfinite(v)]
+    complete = study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,))
+    values = [t.value for t in complete if t.value is not None and math.isfinite(t.value)]
     maximize = study.direction == optuna.study.StudyDirection.MAXIMIZE
     if not values:
         return -sys.float_info.max if maximize else sys.float_info.max
@@ -119,12 +119,6 @@ class PruningOptunaSweeper(OptunaSweeperImpl):
 
     # --- the study ----------------------------------------------------------------------------
     def _open_study(self) -> optuna.Study:
-        existing = optuna.study.get_all_study_names(self.storage) if self.storage else []
-        if self.study_name in existing:
-            # A resumed study: a seeded sampler restarted from its seed would propose the same
-            # points again, so it continues from seed + the number of trials already asked.
-            asked = len(optuna.load_study(study_name=self.study_name, storage=self.storage).trials)
-            self.sampler = self._make_sampler(seed_offset=asked)
         study = optuna.create_study(
             study_name=self.study_name,
             storage=self.storage,
@@ -132,6 +126,10 @@ class PruningOptunaSweeper(OptunaSweeperImpl):
             directions=self._get_directions(),
             load_if_exists=True,
         )
+        if asked := len(study.trials):
+            # A resumed study: a seeded sampler restarted from its seed would propose the same
+            # points again, so it continues from seed + the number of trials already asked.
+            study.sampler = self.sampler = self._make_sampler(seed_offset=asked)
         for stale in study.get_trials(deepcopy=False, states=(TrialState.RUNNING,)):
             log.warning("trial %d was left running by an interrupted sweep: FAIL", stale.number)
             study.tell(stale.number, state=TrialState.FAIL)

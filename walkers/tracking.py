@@ -19,7 +19,7 @@ from mlflow.entities import Metric, Param, RunTag
 from mlflow.exceptions import MlflowException
 from mlflow.tracking import MlflowClient
 
-from walkers.errors import ConfigError
+from walkers.errors import CheckpointError, ConfigError
 
 log = logging.getLogger(__name__)
 
@@ -93,6 +93,15 @@ def require_run(client: MlflowClient, run_id: str, uri: str, key: str = "run_id"
             f"{key}={run_id!r} is not a run in tracking.uri={uri!r}; pass the run id shown at "
             "the end of a training run or in the MLflow UI"
         ) from None
+
+
+def download_checkpoint(client: MlflowClient, run_id: str, filename: str, work_dir) -> Path:
+    """``checkpoints/<filename>`` of a run, downloaded under ``<work_dir>/runs/<run_id>/``."""
+    dst = Path(work_dir) / "runs" / run_id / "download"
+    try:
+        return Path(client.download_artifacts(run_id, f"checkpoints/{filename}", str(dst)))
+    except Exception:
+        raise CheckpointError(f"run {run_id} has no checkpoints/{filename} artifact") from None
 
 
 def search_runs(client: MlflowClient, experiment_id: str, filter_string: str = "") -> list:

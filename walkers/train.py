@@ -95,13 +95,7 @@ def _load_resume_checkpoint(client, cfg: DictConfig, overrides) -> tuple[DictCon
     """The run's stored config (with the allowed new overrides) and its ``last.pt``."""
     run_id = str(cfg.resume)
     tracking.require_run(client, run_id, cfg.tracking.uri, key="resume")
-    dst = Path(cfg.work_dir) / "runs" / run_id / "download"
-    try:
-        path = Path(client.download_artifacts(run_id, "checkpoints/last.pt", str(dst)))
-    except Exception:
-        raise CheckpointError(
-            f"run {run_id} has no checkpoints/last.pt artifact to resume from"
-        ) from None
+    path = tracking.download_checkpoint(client, run_id, "last.pt", cfg.work_dir)
     state = checkpoints.load(path)
     stored = OmegaConf.create(state["config"])
     given = _override_keys(overrides)
@@ -236,8 +230,9 @@ def _raise_keyboard_interrupt(signum, frame):
 @hydra.main(config_path="../conf", config_name="train", execution_whitelist=["walkers.*"])
 def main(cfg: DictConfig) -> float:
     signal.signal(signal.SIGTERM, _raise_keyboard_interrupt)  # SIGTERM ends the run like Ctrl-C
-    if cfg.torch_threads is None and parallel_jobs() > 1:  # parallel jobs share the cores
-        cfg.torch_threads = max(1, (os.cpu_count() or 1) // parallel_jobs())
+    jobs = parallel_jobs()
+    if cfg.torch_threads is None and jobs > 1:  # parallel jobs share the cores
+        cfg.torch_threads = max(1, (os.cpu_count() or 1) // jobs)
     try:
         return train(cfg, HydraConfig.get().overrides.task)
     except (ConfigError, CheckpointError) as e:

@@ -23,7 +23,7 @@ from tqdm import tqdm
 from walkers import checkpoints
 from walkers.agents.base import Agent, Transition
 from walkers.agents.health import SKIPPED_IN_A_ROW
-from walkers.rollout import run_episodes
+from walkers.rollout import record_episodes, run_episodes
 from walkers.stats import run_summary
 from walkers.tracking import Tracker
 from walkers.video import write_gif
@@ -147,15 +147,9 @@ class Trainer:
 
     def record_video(self) -> None:
         """Log a gif of one greedy episode (from the first eval start state) to ``videos/``."""
-        frames: list = []
-        run_episodes(
-            self.agent,
-            self.video_env,
-            1,
-            self.settings.seed + EVAL_SEED_OFFSET,
-            on_frame=lambda _, frame: frames.append(frame),
+        _, frames, fps = record_episodes(
+            self.agent, self.video_env, 1, self.settings.seed + EVAL_SEED_OFFSET
         )
-        fps = self.video_env.metadata.get("render_fps") or 30
         path = self.checkpoint_dir.parent / "videos" / f"step_{self.progress.step:08d}.gif"
         path.parent.mkdir(parents=True, exist_ok=True)
         write_gif(frames[:TRAINING_GIF_FRAMES], path, fps)

@@ -191,7 +191,7 @@ class ActorCritic(Agent):
             actor_loss = -self.critic(b.obs, self.actor(b.obs), members=slice(0, 1)).mean()
             self.actor_optimizer.zero_grad(set_to_none=True)
             actor_loss.backward(inputs=list(self.actor.parameters()))  # no critic weight grads
-            self.actor_optimizer.found_inf = torch.maximum(bad, self.guard.is_bad(actor_loss))
+            self.actor_optimizer.found_inf = self.guard.is_bad(critic_loss, actor_loss)
             self.actor_optimizer.step()
             soft_update(self.critic_target, self.critic, self.tau)
             soft_update(self.actor_target, self.actor, self.tau)

@@ -22,7 +22,9 @@ class NonFiniteGuard:
     @staticmethod
     def is_bad(*values: torch.Tensor) -> torch.Tensor:
         """1.0 if any of ``values`` is NaN/inf, else 0.0 (a device tensor, no sync)."""
-        finite = torch.stack([torch.isfinite(v).all() for v in values]).all()
+        finite = torch.isfinite(values[0]).all()
+        for value in values[1:]:
+            finite &= torch.isfinite(value).all()
         return (~finite).to(torch.float32)
 
     def record(self, bad: torch.Tensor) -> None:
@@ -30,7 +32,8 @@ class NonFiniteGuard:
         self.in_a_row = (self.in_a_row + bad) * bad  # reset by any good update
 
     def metrics(self) -> dict[str, torch.Tensor]:
-        return {SKIPPED: self.skipped.clone(), SKIPPED_IN_A_ROW: self.in_a_row.clone()}
+        """The counters themselves, not copies: read when logged, they are current."""
+        return {SKIPPED: self.skipped, SKIPPED_IN_A_ROW: self.in_a_row}
 
     def state_dict(self) -> dict:
         return {"skipped": self.skipped.item(), "in_a_row": self.in_a_row.item()}

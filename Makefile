@@ -30,8 +30,8 @@ ab: $(STAMP)  ## a small A/B end to end in minutes: REINFORCE vs TD3 on Pendulum
 compare: $(STAMP)  ## A/B report from finished runs (ARGS="env=walker2d algos=[reinforce,td3] tracking.experiment=...")
 	$(PY) -m walkers.compare $(ARGS)
 
-test: $(STAMP)  ## run the test suite (real tiny trainings, sweeps, reports; ~7 minutes on 2 cores)
-	$(PY) -m pytest -q $(ARGS)
+test: $(STAMP)  ## run the test suite (real tiny trainings, sweeps, offline RL, reports; one worker per core)
+	$(PY) -m pytest -q -n auto --dist loadgroup --durations=10 $(ARGS)
 
 bench: $(STAMP)  ## benchmarks: the TD3 update vs a plain eager implementation, side by side
 	$(PY) benchmarks/bench_update.py $(ARGS)

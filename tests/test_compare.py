@@ -157,7 +157,7 @@ def test_verdict_follows_the_evidence():
                 ["td3", "reinforce"],
                 env_id="E",
                 threshold=50,
-                budget=200,
+                budgets={"env_steps": 200},
                 score="final/return_mean",
                 n_resamples=500,
             )

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tests.conftest import all_runs, compose_cfg
+from tests.conftest import PENDULUM_TD3_GROUP, all_runs, compose_cfg
 from walkers.train import train
 
 
@@ -20,19 +20,34 @@ def learning_run(store, overrides: list[str]) -> dict[str, list[float]]:
     return history
 
 
-@pytest.mark.parametrize("algo", ["td3", "ddpg"])
-def test_actor_critics_learn_pendulum(store, algo):
-    # A random policy scores about -1200 on Pendulum-v1; a swing-up policy about -150.
+# A random policy scores about -1200 on Pendulum-v1; a swing-up policy about -150.
+
+
+@pytest.mark.xdist_group(PENDULUM_TD3_GROUP)
+def test_td3_learns_pendulum(pendulum_td3):
+    history = [
+        m.value
+        for m in pendulum_td3["client"].get_metric_history(
+            pendulum_td3["run"].info.run_id, "eval/return_mean"
+        )
+    ]
+    print(history)
+    assert history[0] < -900, history  # it started from a poor policy ...
+    assert max(history) >= -300, history  # ... and learned to swing up
+
+
+def test_ddpg_learns_pendulum(store):
     history = learning_run(
         store,
         [
-            f"algo={algo}",
+            "algo=ddpg",
             "env=pendulum",
             "seed=0",
             "total_steps=8000",
             "eval_every=2000",
             "eval_episodes=5",
             "algo.learning_starts=1000",
+            "algo.hidden_sizes=[64,64]",  # like the TD3 run: learns as well, in a third of the time
             "checkpoint_every=5000",
         ],
     )["eval/return_mean"]

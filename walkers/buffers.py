@@ -16,12 +16,16 @@ class Batch(NamedTuple):
     terminated: torch.Tensor  # 1.0 where the episode really ended (no bootstrap), else 0.0
 
 
+DATA_FIELDS = ("obs", "action", "reward", "next_obs", "terminated", "episode_end")
+
+
 class ReplayBuffer:
     """Ring buffer of transitions in preallocated float32 tensors on ``device``.
 
-    Stores exactly what TD3/DDPG read (obs, action, reward, next_obs, terminated): about 170 MB
-    for 1M Walker2d transitions. Sampling draws indices with its own ``torch.Generator`` so a
-    seeded run samples the same batches every time.
+    Stores what TD3/DDPG read (obs, action, reward, next_obs, terminated): about 170 MB for 1M
+    Walker2d transitions, plus one byte per transition marking episode ends, so a saved buffer
+    can be cut back into episodes (a "replay" dataset, :mod:`walkers.collect`). Sampling draws
+    indices with its own ``torch.Generator`` so a seeded run samples the same batches every time.
     """
 
     def __init__(self, capacity: int, obs_dim: int, act_dim: int, device="cpu", seed: int = 0):
@@ -33,6 +37,7 @@ class ReplayBuffer:
         self.action = torch.empty(self.capacity, act_dim, **kw)
         self.reward = torch.empty(self.capacity, **kw)
         self.terminated = torch.empty(self.capacity, **kw)
+        self.episode_end = torch.zeros(self.capacity, dtype=torch.bool, device=self.device)
         self.pos = 0
         self.size = 0
         self.generator = torch.Generator(device=self.device)
@@ -41,13 +46,16 @@ class ReplayBuffer:
     def __len__(self) -> int:
         return self.size
 
-    def add(self, obs, action, reward: float, next_obs, terminated: bool) -> None:
+    def add(
+        self, obs, action, reward: float, next_obs, terminated: bool, episode_end: bool = False
+    ) -> None:
         i = self.pos
         self.obs[i] = torch.as_tensor(obs)
         self.action[i] = torch.as_tensor(action)
         self.reward[i] = reward
         self.next_obs[i] = torch.as_tensor(next_obs)
         self.terminated[i] = float(terminated)
+        self.episode_end[i] = episode_end
         self.pos = (i + 1) % self.capacity
         self.size = min(self.size + 1, self.capacity)
 
@@ -70,7 +78,7 @@ class ReplayBuffer:
             n = self.size
             state["data"] = {
                 name: getattr(self, name)[:n].cpu().clone()
-                for name in ("obs", "action", "reward", "next_obs", "terminated")
+                for name in DATA_FIELDS
             }
         return state
 
@@ -112,3 +120,133 @@ class EpisodeBuffer:
     def pop_episodes(self) -> list[dict[str, np.ndarray]]:
         episodes, self.episodes = self.episodes, []
         return episodes
+
+
+# --- offline data -------------------------------------------------------------------------------
+
+
+class Episode(NamedTuple):
+    """One recorded episode: ``observations`` has one row more than the steps (the last one)."""
+
+    observations: np.ndarray  # (T + 1, obs_dim) float32
+    actions: np.ndarray  # (T, act_dim) float32
+    rewards: np.ndarray  # (T,)
+    terminations: np.ndarray  # (T,) bool
+    truncations: np.ndarray  # (T,) bool
+
+    @property
+    def episode_return(self) -> float:
+        return float(np.sum(self.rewards))
+
+
+def replay_episodes(state: dict) -> list[Episode]:
+    """The whole episodes in a saved replay buffer (``state_dict(with_data=True)``), oldest first.
+
+    The newest episode may be unfinished and, once the ring has wrapped (``size == capacity``), the
+    oldest one has lost its start: both are dropped.
+    """
+    data = {k: v.numpy() for k, v in state["data"].items()}
+    if "episode_end" not in data:
+        raise ValueError("this replay buffer was saved without episode ends (an older walkers)")
+    n, pos = state["size"], state["pos"]
+    order = (pos + np.arange(n)) % n if n else np.arange(0)
+    data = {k: v[order] for k, v in data.items()}
+    ends = np.flatnonzero(data["episode_end"])
+    starts = np.r_[0, ends[:-1] + 1]
+    wrapped = pos != n
+    episodes = []
+    for i, (start, end) in enumerate(zip(starts, ends, strict=True)):
+        if i == 0 and wrapped:
+            continue
+        steps = slice(start, end + 1)
+        terminated = data["terminated"][steps] > 0.5
+        episodes.append(
+            Episode(
+                observations=np.concatenate([data["obs"][steps], data["next_obs"][end : end + 1]]),
+                actions=data["action"][steps],
+                rewards=data["reward"][steps],
+                terminations=terminated,
+                truncations=data["episode_end"][steps] & ~terminated,
+            )
+        )
+    return episodes
+
+
+class SequenceBatch(NamedTuple):
+    returns_to_go: torch.Tensor  # (B, K) scaled by the return scale
+    obs: torch.Tensor  # (B, K, obs_dim) normalized
+    actions: torch.Tensor  # (B, K, act_dim) in [-1, 1]
+    timesteps: torch.Tensor  # (B, K) long
+    mask: torch.Tensor  # (B, K) 1.0 for real steps, 0.0 for padding after the episode's end
+
+
+class SequenceSampler:
+    """Windows of ``context`` consecutive steps of whole episodes, for sequence models (DT).
+
+    A window starts at a step drawn uniformly from the whole dataset (so an episode is drawn in
+    proportion to its length, as in the reference code) and is cut at its episode's end; the rest
+    is zero padding, marked in ``mask``. Everything is precomputed once into flat tensors on
+    ``device``: observations normalized, actions mapped to [-1, 1], undiscounted returns-to-go
+    divided by ``return_scale``, timesteps clipped to ``max_timestep - 1``.
+    """
+
+    def __init__(
+        self,
+        episodes: list[Episode],
+        context: int,
+        *,
+        obs_mean: np.ndarray,
+        obs_std: np.ndarray,
+        action_center: np.ndarray,
+        action_half_range: np.ndarray,
+        return_scale: float,
+        max_timestep: int,
+        device="cpu",
+        seed: int = 0,
+    ):
+        self.context = context
+        self.device = torch.device(device)
+        obs = np.concatenate([e.observations[:-1] for e in episodes])
+        actions = np.concatenate([e.actions for e in episodes])
+        rtg = np.concatenate([np.cumsum(e.rewards[::-1])[::-1] for e in episodes])
+        timesteps = np.concatenate([np.arange(len(e.rewards)) for e in episodes])
+        lengths = np.array([len(e.rewards) for e in episodes])
+        # for every step: one past the last step of its episode
+        ends = np.repeat(np.cumsum(lengths), lengths)
+
+        def tensor(x, dtype=torch.float32):
+            return torch.as_tensor(np.ascontiguousarray(x), dtype=dtype, device=self.device)
+
+        self.obs = tensor((obs - obs_mean) / obs_std)
+        self.actions = tensor(np.clip((actions - action_center) / action_half_range, -1, 1))
+        self.returns_to_go = tensor(rtg / return_scale)
+        self.timesteps = tensor(np.minimum(timesteps, max_timestep - 1), torch.long)
+        self.ends = tensor(ends, torch.long)
+        self.offsets = torch.arange(context, device=self.device)
+        self.generator = torch.Generator(device=self.device)
+        self.generator.manual_seed(seed)
+
+    def __len__(self) -> int:
+        return len(self.obs)
+
+    def sample(self, batch_size: int) -> SequenceBatch:
+        start = torch.randint(
+            0, len(self), (batch_size,), device=self.device, generator=self.generator
+        )
+        idx = start[:, None] + self.offsets  # (B, K)
+        valid = idx < self.ends[start][:, None]
+        idx = torch.where(valid, idx, start[:, None])  # padding reads a real step, then zeroed
+        mask = valid.to(torch.float32)
+        return SequenceBatch(
+            self.returns_to_go[idx] * mask,
+            self.obs[idx] * mask[..., None],
+            self.actions[idx] * mask[..., None],
+            self.timesteps[idx] * valid,
+            mask,
+        )
+
+    def state_dict(self) -> dict:
+        return {"generator": self.generator.get_state()}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.generator.set_state(state["generator"])

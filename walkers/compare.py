@@ -4,7 +4,10 @@
 
 Runs are grouped by their ``algo`` tag, one seed per run. Only comparable runs enter: the
 chosen env, one budget (``total_steps``), status FINISHED; everything else is left out with a
-note in the report. Every per-run number comes from the run's logged eval curve through the same
+note in the report. Offline runs (``algo=dt``) count gradient steps, not env steps: they get their
+own budget and their own learning-curve panel, they are compared with the online runs on final
+return but not on AUC (a rate over different x-axes), and come from one dataset, named in the
+report. Every per-run number comes from the run's logged eval curve through the same
 :func:`walkers.stats.run_summary` the trainer uses; across seeds the statistics are those of
 Agarwal et al. 2021 (:mod:`walkers.stats`).
 """
@@ -26,15 +29,20 @@ from omegaconf import DictConfig
 from walkers import stats, tracking
 from walkers.cli import exit_on_bad_overrides
 from walkers.errors import ConfigError
-from walkers.report import verdict, write_report
+from walkers.report import AXIS_NAMES, verdict, write_report
+from walkers.tracking import ENV_STEPS, GRADIENT_STEPS
 from walkers.trial import PRUNED_TAG
 
 log = logging.getLogger("walkers")
 
 CURVE_METRIC = "eval/return_mean"
 SCORES = ("final/return_mean", "final/return_last10", "final/auc")
-#: Tag that marks runs which are not training runs (reports, sweep parents).
+#: Tag that marks runs which are not training runs (reports, sweep parents, datasets).
 KIND_TAG = "walkers.kind"
+
+
+def x_axis(run) -> str:
+    return run.data.tags.get(tracking.X_AXIS_TAG, ENV_STEPS)
 
 
 def _finite_or_none(x: float) -> float | None:
@@ -52,6 +60,8 @@ class SeedRun:
     steps: np.ndarray
     returns: np.ndarray
     summary: dict[str, float]
+    x_axis: str = ENV_STEPS
+    dataset: str | None = None  # offline runs: what they learned from
 
 
 @dataclass
@@ -63,10 +73,20 @@ class AlgoResult:
     auc: np.ndarray
     steps_to_threshold: np.ndarray  # inf where a seed never reached it
 
+    @property
+    def x_axis(self) -> str:
+        return self.runs[0].x_axis
+
+    @property
+    def dataset(self) -> str | None:
+        return self.runs[0].dataset
+
     def as_dict(self) -> dict:
         reached = np.isfinite(self.steps_to_threshold)
         return {
             "seeds": len(self.runs),
+            "x_axis": self.x_axis,
+            "dataset": self.dataset,
             "run_ids": [r.run_id for r in self.runs],
             "score_mean": float(self.scores.mean()),
             "score_std": float(self.scores.std()),
@@ -107,19 +127,20 @@ class PairResult:
 class Comparison:
     env_id: str
     threshold: float
-    budget: int | None
+    budgets: dict[str, int]  # x-axis -> total_steps of the runs compared on it
     score: str
     confidence: float
     algos: list[AlgoResult]
     pairs: list[PairResult]
-    grid: np.ndarray  # env steps of the aligned learning curves
+    grids: dict[str, np.ndarray]  # x-axis -> steps of the aligned learning curves
     left_out: list[str] = field(default_factory=list)
 
     def as_dict(self) -> dict:
         return {
             "env": self.env_id,
             "threshold": self.threshold,
-            "total_steps": self.budget,
+            "total_steps": self.budgets.get(ENV_STEPS),
+            "gradient_steps": self.budgets.get(GRADIENT_STEPS),
             "score": self.score,
             "confidence": self.confidence,
             "algos": {r.algo: r.as_dict() for r in self.algos},
@@ -152,11 +173,28 @@ def _runs(n: int) -> str:
     return f"{n} run" if n == 1 else f"{n} runs"
 
 
-def select_runs(runs: list, env_id: str, algos: list[str], budget: int | None):
+def _most_common(values) -> object:
+    return Counter(values).most_common(1)[0][0]
+
+
+def _listed(counts: Counter, key: str) -> str:
+    return ", ".join(f"{key}={value}: {n}" for value, n in sorted(counts.items(), key=str))
+
+
+def select_runs(
+    runs: list,
+    env_id: str,
+    algos: list[str],
+    budget: int | None,
+    gradient_budget: int | None = None,
+    dataset: str | None = None,
+):
     """The comparable training runs of ``algos`` on ``env_id``, and notes on the rest.
 
-    Returns ``(chosen runs, budget, notes)``. The budget is ``budget`` if given, else the most
-    common one among the finished runs on the env.
+    Returns ``(chosen runs, budgets, notes)``: ``budgets`` maps each x-axis to the budget its runs
+    share, the given one (``budget`` for env steps, ``gradient_budget`` for offline runs) or else
+    the most common among the finished runs. Offline runs also share one dataset (``dataset``, or
+    the most common).
     """
     notes: list[str] = []
     training = [r for r in runs if r.data.tags.get(KIND_TAG, "train") == "train"]
@@ -178,15 +216,33 @@ def select_runs(runs: list, env_id: str, algos: list[str], budget: int | None):
     finished = [
         r for r in on_env if r.info.status == tracking.FINISHED and PRUNED_TAG not in r.data.tags
     ]
-    if budget is None and finished:
-        budget = Counter(_budget(r) for r in finished).most_common(1)[0][0]
-    other_budget = [r for r in finished if _budget(r) != budget]
-    if other_budget:
-        budgets = Counter(_budget(r) for r in other_budget)
-        listed = ", ".join(f"total_steps={b}: {n}" for b, n in sorted(budgets.items(), key=str))
-        notes.append(f"{_runs(len(other_budget))} with another budget than {budget} ({listed})")
-    chosen = [r for r in finished if _budget(r) == budget]
-    return chosen, budget, notes
+    offline = [r for r in finished if x_axis(r) == GRADIENT_STEPS]
+    if offline:
+        dataset = dataset or _most_common(r.data.tags.get("dataset") for r in offline)
+        other = Counter(r.data.tags.get("dataset") for r in offline)
+        del other[dataset]
+        if other:
+            notes.append(
+                f"{_runs(sum(other.values()))} trained on another dataset than {dataset} "
+                f"({_listed(other, 'dataset')})"
+            )
+        finished = [
+            r for r in finished if x_axis(r) == ENV_STEPS or r.data.tags.get("dataset") == dataset
+        ]
+    chosen, budgets = [], {}
+    for axis, given in ((ENV_STEPS, budget), (GRADIENT_STEPS, gradient_budget)):
+        on_axis = [r for r in finished if x_axis(r) == axis]
+        if not on_axis:
+            continue
+        budgets[axis] = given if given is not None else _most_common(_budget(r) for r in on_axis)
+        other = Counter(_budget(r) for r in on_axis if _budget(r) != budgets[axis])
+        if other:
+            notes.append(
+                f"{_runs(sum(other.values()))} with another budget than {budgets[axis]} "
+                f"{AXIS_NAMES[axis]} ({_listed(other, 'total_steps')})"
+            )
+        chosen += [r for r in on_axis if _budget(r) == budgets[axis]]
+    return chosen, budgets, notes
 
 
 def load_seed_runs(client, runs: list, threshold: float) -> dict[str, list[SeedRun]]:
@@ -203,6 +259,8 @@ def load_seed_runs(client, runs: list, threshold: float) -> dict[str, list[SeedR
             steps=np.asarray(steps),
             returns=np.asarray(values),
             summary=stats.run_summary(steps, values, threshold),
+            x_axis=x_axis(run),
+            dataset=run.data.tags.get("dataset"),
         )
         grouped.setdefault(seed_run.algo, []).append(seed_run)
     return grouped
@@ -217,7 +275,7 @@ def compare_groups(
     *,
     env_id: str,
     threshold: float,
-    budget: int | None,
+    budgets: dict[str, int],
     score: str,
     confidence: float = 0.95,
     n_resamples: int = 5000,
@@ -241,7 +299,10 @@ def compare_groups(
         )
     pairs = []
     for a, b in combinations(results, 2):
-        for quantity, xa, xb in (("score", a.scores, b.scores), ("auc", a.auc, b.auc)):
+        quantities = [("score", a.scores, b.scores)]
+        if a.x_axis == b.x_axis:  # a rate of learning only compares on the same x-axis
+            quantities.append(("auc", a.auc, b.auc))
+        for quantity, xa, xb in quantities:
             pairs.append(
                 PairResult(
                     a.algo,
@@ -251,16 +312,19 @@ def compare_groups(
                     stats.mann_whitney_p(xa, xb),
                 )
             )
-    all_steps = np.concatenate([r.steps for res in results for r in res.runs])
+    grids = {}
+    for res in results:
+        steps = np.concatenate([r.steps for r in res.runs])
+        grids[res.x_axis] = np.union1d(grids.get(res.x_axis, steps), steps)
     return Comparison(
         env_id=env_id,
         threshold=threshold,
-        budget=budget,
+        budgets=budgets,
         score=score,
         confidence=confidence,
         algos=results,
         pairs=pairs,
-        grid=np.unique(all_steps),
+        grids=grids,
     )
 
 
@@ -289,7 +353,9 @@ def compare(cfg: DictConfig) -> tuple[Comparison, Path, str | None]:
         )
     algos = list(cfg.algos)
     runs = tracking.search_runs(client, experiment.experiment_id)
-    chosen, budget, notes = select_runs(runs, cfg.env.id, algos, cfg.total_steps)
+    chosen, budgets, notes = select_runs(
+        runs, cfg.env.id, algos, cfg.total_steps, cfg.gradient_steps, cfg.dataset
+    )
     grouped = load_seed_runs(client, chosen, cfg.env.threshold)
     order = algos or sorted(grouped)
     missing = [a for a in order if a not in grouped]
@@ -305,7 +371,7 @@ def compare(cfg: DictConfig) -> tuple[Comparison, Path, str | None]:
         order,
         env_id=cfg.env.id,
         threshold=cfg.env.threshold,
-        budget=budget,
+        budgets=budgets,
         score=cfg.score,
         confidence=cfg.confidence,
         n_resamples=cfg.n_resamples,
@@ -340,7 +406,7 @@ def _log_report(client, cfg: DictConfig, comparison: Comparison, files: list[Pat
         tracker.log_params(
             {
                 "score": comparison.score,
-                "total_steps": comparison.budget,
+                **{f"budget.{axis}": b for axis, b in comparison.budgets.items()},
                 "confidence": comparison.confidence,
                 "n_resamples": cfg.n_resamples,
                 **{f"runs.{r.algo}": len(r.runs) for r in comparison.algos},

@@ -16,11 +16,11 @@ import sys
 from pathlib import Path
 
 import hydra
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from walkers import checkpoints, tracking
 from walkers.cli import exit_on_bad_overrides
-from walkers.envs import env_spaces, make_env
+from walkers.envs import make_env
 from walkers.errors import CheckpointError, ConfigError
 from walkers.rollout import record_episodes
 from walkers.trainer import EVAL_SEED_OFFSET
@@ -60,7 +60,7 @@ def fetch_checkpoint(cfg: DictConfig, client) -> Path:
 
 def evaluate(cfg: DictConfig) -> dict:
     """Replay the policy; returns ``{"returns": [...], "videos": [paths]}``."""
-    from walkers.train import build_agent  # the one place agents are instantiated
+    from walkers.train import agent_from_checkpoint  # the one place agents are instantiated
 
     _check(cfg)
     client = None
@@ -68,12 +68,9 @@ def evaluate(cfg: DictConfig) -> dict:
         client = tracking.connect(cfg.tracking.uri)
         tracking.require_run(client, cfg.run_id, cfg.tracking.uri)
     state = checkpoints.load(fetch_checkpoint(cfg, client))
-    run_cfg = OmegaConf.create(state["config"])
-    run_cfg.device = cfg.device
-    env = make_env(run_cfg.env, shaping=False, render_mode=cfg.render)
+    env = make_env(state["config"]["env"], shaping=False, render_mode=cfg.render)
     try:
-        agent = build_agent(run_cfg, env_spaces(env))
-        agent.load_state_dict(state["agent"])
+        run_cfg, agent = agent_from_checkpoint(state, env, cfg.device)
         seed = cfg.seed if cfg.seed is not None else run_cfg.seed + EVAL_SEED_OFFSET
         record = cfg.video and cfg.render == "rgb_array"
         returns, frames, fps = record_episodes(

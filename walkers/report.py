@@ -18,11 +18,13 @@ matplotlib.use("Agg")  # files only, never a window
 import matplotlib.pyplot as plt  # noqa: E402
 
 from walkers import stats  # noqa: E402
+from walkers.tracking import ENV_STEPS  # noqa: E402
 
 if TYPE_CHECKING:
     from walkers.compare import AlgoResult, Comparison, PairResult
 
 QUANTITY_NAMES = {"score": "final return", "auc": "AUC (rate of learning)"}
+AXIS_NAMES = {"env_steps": "env steps", "gradient_steps": "gradient steps"}
 
 
 def _num(x: float) -> str:
@@ -37,8 +39,27 @@ def _interval(point: float, low: float, high: float) -> str:
     return f"{_num(point)} [{_num(low)}, {_num(high)}]"
 
 
-def _steps(x: float | None) -> str:
-    return "not reached" if x is None or not math.isfinite(x) else f"{x:,.0f}"
+def _steps(x: float | None, axis: str = ENV_STEPS) -> str:
+    if x is None or not math.isfinite(x):
+        return "not reached"
+    return f"{x:,.0f}" if axis == ENV_STEPS else f"{x:,.0f} {AXIS_NAMES[axis]}"
+
+
+def label(r: AlgoResult) -> str:
+    """The algorithm, and for an offline one the dataset it learned from."""
+    return f"{r.algo} (offline, {r.dataset})" if r.x_axis != ENV_STEPS else r.algo
+
+
+def budgets_text(c: Comparison) -> str:
+    """"10,000 env steps; offline: 2,000 gradient steps on <dataset>"."""
+    parts = []
+    for axis, budget in c.budgets.items():
+        text = f"{budget:,} {AXIS_NAMES[axis]}" if budget else f"their budget in {AXIS_NAMES[axis]}"
+        if axis != ENV_STEPS:
+            datasets = sorted({r.dataset for r in c.algos if r.x_axis == axis})
+            text = f"offline: {text} on dataset {', '.join(map(str, datasets))}"
+        parts.append(text)
+    return "; ".join(parts) or "their budget"
 
 
 def _clause(pair: PairResult, confidence: float) -> str:
@@ -60,9 +81,9 @@ def verdict(c: Comparison) -> str:
     ranked = sorted(c.algos, key=lambda r: -r.iqm[0])
     rank = {r.algo: i for i, r in enumerate(ranked)}
     seeds = {r.algo: len(r.runs) for r in c.algos}
-    budget = f"{c.budget:,} env steps" if c.budget else "their budget"
+    seed_counts = ", ".join(f"{a} {n}" for a, n in seeds.items())
     lines = [
-        f"On {c.env_id} ({budget}; seeds: {', '.join(f'{a} {n}' for a, n in seeds.items())}),"
+        f"On {c.env_id} ({budgets_text(c)}; seeds: {seed_counts}),"
         f" ranked by the IQM of {c.score}: "
         + ", ".join(f"{r.algo} {_interval(*r.iqm)}" for r in ranked)
         + f" ({level} CIs)."
@@ -90,17 +111,27 @@ def curves_on_grid(result: AlgoResult, grid: np.ndarray) -> np.ndarray:
 
 
 def plot_learning_curves(c: Comparison, path: Path) -> Path:
-    fig, ax = plt.subplots(figsize=(7, 4.5))
-    for result in c.algos:
-        mean, low, high = stats.mean_band(curves_on_grid(result, c.grid), c.confidence)
-        (line,) = ax.plot(c.grid, mean, label=f"{result.algo} ({len(result.runs)} seeds)")
-        ax.fill_between(c.grid, low, high, color=line.get_color(), alpha=0.2, linewidth=0)
-    ax.axhline(c.threshold, color="grey", linestyle="--", linewidth=1, label="threshold")
-    ax.set_xlabel("env steps")
-    ax.set_ylabel(f"eval return (mean, {c.confidence:.0%} bootstrap CI)")
-    ax.set_title(c.env_id)
-    ax.legend()
-    ax.grid(alpha=0.3)
+    """One panel per x-axis (env steps; gradient steps for offline runs), shared y-axis."""
+    axes_used = list(c.grids)
+    fig, axes = plt.subplots(
+        1, len(axes_used), figsize=(7 * len(axes_used), 4.5), sharey=True, squeeze=False
+    )
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for ax, axis in zip(axes[0], axes_used, strict=True):
+        grid = c.grids[axis]
+        for i, result in enumerate(c.algos):
+            if result.x_axis != axis:
+                continue
+            mean, low, high = stats.mean_band(curves_on_grid(result, grid), c.confidence)
+            color = colors[i % len(colors)]
+            ax.plot(grid, mean, color=color, label=f"{label(result)} ({len(result.runs)} seeds)")
+            ax.fill_between(grid, low, high, color=color, alpha=0.2, linewidth=0)
+        ax.axhline(c.threshold, color="grey", linestyle="--", linewidth=1, label="threshold")
+        ax.set_xlabel(AXIS_NAMES[axis])
+        ax.set_title(c.env_id if axis == ENV_STEPS else f"{c.env_id}, offline")
+        ax.legend()
+        ax.grid(alpha=0.3)
+    axes[0][0].set_ylabel(f"eval return (mean, {c.confidence:.0%} bootstrap CI)")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
@@ -123,7 +154,7 @@ def plot_scores(c: Comparison, path: Path) -> Path:
                 capsize=5,
             )
         ax.plot(i + 0.15, point, "k_", markersize=14)
-    ax.set_xticks(range(len(c.algos)), [r.algo for r in c.algos])
+    ax.set_xticks(range(len(c.algos)), [label(r) for r in c.algos], fontsize=8)
     ax.set_ylabel(f"{c.score} (dots: seeds; bar: IQM, {c.confidence:.0%} CI)")
     ax.set_title(c.env_id)
     ax.grid(alpha=0.3, axis="y")
@@ -138,7 +169,7 @@ def markdown(c: Comparison, source: str) -> str:
     names = " vs ".join(r.algo for r in c.algos)
     out = [f"# {names} on {c.env_id}", "", verdict(c), ""]
     out += [
-        f"Runs from {source}; budget {c.budget:,} env steps; score `{c.score}`; threshold "
+        f"Runs from {source}; budget {budgets_text(c)}; score `{c.score}`; threshold "
         f"{_num(c.threshold)}. IQM = interquartile mean; CIs are {level} percentile bootstraps "
         "over seeds (stratified per env); P(A > B) is the probability that a random seed of A "
         "beats a random seed of B (Mann-Whitney U / nm), after Agarwal et al. 2021. A verdict "
@@ -153,9 +184,10 @@ def markdown(c: Comparison, source: str) -> str:
     for r in c.algos:
         d = r.as_dict()
         out.append(
-            f"| {r.algo} | {d['seeds']} | {_num(d['score_mean'])} ± {_num(d['score_std'])} "
+            f"| {label(r)} | {d['seeds']} | {_num(d['score_mean'])} ± {_num(d['score_std'])} "
             f"| {_interval(*r.iqm)} | {_num(d['auc_mean'])} ± {_num(d['auc_std'])} "
-            f"| {_steps(d['steps_to_threshold_median'])} | {d['threshold_reached']}/{d['seeds']} |"
+            f"| {_steps(d['steps_to_threshold_median'], r.x_axis)} "
+            f"| {d['threshold_reached']}/{d['seeds']} |"
         )
     out += [
         "",
@@ -169,6 +201,12 @@ def markdown(c: Comparison, source: str) -> str:
             f"| {p.a} vs {p.b} | {QUANTITY_NAMES[p.quantity]} | {_interval(*p.p_improvement)} "
             f"| {p.p_value:.3g} |"
         )
+    if len(c.grids) > 1:
+        out += [
+            "",
+            "Online and offline runs are compared on final return only: their AUCs are means "
+            "over different x-axes (env steps vs gradient steps on a fixed dataset).",
+        ]
     out += [
         "",
         "## Learning curves",
@@ -187,7 +225,7 @@ def markdown(c: Comparison, source: str) -> str:
             s = run.summary
             out.append(
                 f"| {r.algo} | {run.seed} | `{run.run_id}` | {_num(s[c.score])} "
-                f"| {_num(s['final/auc'])} | {_steps(s['final/steps_to_threshold'])} |"
+                f"| {_num(s['final/auc'])} | {_steps(s['final/steps_to_threshold'], r.x_axis)} |"
             )
     if c.left_out:
         out += ["", "## Left out", ""] + [f"- {note}" for note in c.left_out]

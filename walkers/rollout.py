@@ -27,12 +27,14 @@ def run_episodes(
     returns = np.zeros(episodes)
     for i in range(episodes):
         obs, _ = env.reset(seed=seed + i)
+        agent.begin_episode()
         render = on_frame is not None and (render_episodes is None or i < render_episodes)
         done = False
         while not done:
             if render:
                 on_frame(i, env.render())
             obs, reward, terminated, truncated, _ = env.step(agent.act(obs, explore=False))
+            agent.record_reward(float(reward))
             returns[i] += reward
             done = terminated or truncated
     return returns

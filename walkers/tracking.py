@@ -26,6 +26,9 @@ log = logging.getLogger(__name__)
 MLFLOW_MAX_PARAMS_PER_BATCH = 100
 #: Statuses a run ends with.
 FINISHED, FAILED, KILLED = "FINISHED", "FAILED", "KILLED"
+#: Run tag naming what the step of a run's metrics counts; runs without it count env steps.
+X_AXIS_TAG = "walkers.x_axis"
+ENV_STEPS, GRADIENT_STEPS = "env_steps", "gradient_steps"
 
 
 def ui_url(experiment_id: str, run_id: str | None = None, host: str = "http://127.0.0.1:5000"):

@@ -29,9 +29,9 @@ from walkers.agents.base import Agent, resolve_device
 from walkers.cli import exit_on_bad_overrides
 from walkers.envs import env_spaces, make_env
 from walkers.errors import CheckpointError, ConfigError
-from walkers.trainer import Trainer, TrainerSettings, TrainingDiverged
+from walkers.trainer import OfflineTrainer, Trainer, TrainerSettings, TrainingDiverged
 from walkers.trial import PRUNED_TAG, TrialReporter
-from walkers.validate import validate
+from walkers.validate import is_offline, validate
 
 log = logging.getLogger("walkers")
 
@@ -53,24 +53,39 @@ RESUME_OVERRIDABLE = (
 AGENT_TARGETS = ["walkers.agents.*"]
 
 
-def build_agent(cfg: DictConfig, spaces: dict) -> Agent:
-    """Instantiate ``cfg.algo`` (its ``_target_`` class) for an env with ``spaces``."""
+def build_agent(cfg: DictConfig, spaces: dict, **data) -> Agent:
+    """Instantiate ``cfg.algo`` (its ``_target_`` class) for an env with ``spaces``.
+
+    ``data``: what an offline agent learns from (``dataset=``); online agents take nothing more.
+    """
     kwargs = OmegaConf.to_container(cfg.algo, resolve=True)
     kwargs.pop("name", None)
     try:
-        return hydra.utils.instantiate(
+        # partial, then called: Hydra would turn a dataset object into a config node
+        factory = hydra.utils.instantiate(
             kwargs,
             **spaces,
             device=str(resolve_device(cfg.device)),
             seed=cfg.seed,
             _convert_="all",
+            _partial_=True,
             _execution_whitelist_=AGENT_TARGETS,
         )
+        return factory(**data)
     except (InstantiationException, ValueError, TypeError) as e:
         cause = e.__cause__ if isinstance(e, InstantiationException) else e
         if isinstance(cause, ValueError | TypeError):  # a bad or unknown hyperparameter
             raise ConfigError(f"algo.{cause}" if "=" in str(cause) else f"algo: {cause}") from None
         raise
+
+
+def agent_from_checkpoint(state: dict, env, device: str) -> tuple[DictConfig, Agent]:
+    """The run config stored in a checkpoint and its agent, restored, for acting on ``env``."""
+    run_cfg = OmegaConf.create(state["config"])
+    run_cfg.device = device
+    agent = build_agent(run_cfg, env_spaces(env))
+    agent.load_state_dict(state["agent"])
+    return run_cfg, agent
 
 
 def git_commit() -> str:
@@ -118,18 +133,22 @@ def train(cfg: DictConfig, overrides: list[str] | tuple = ()) -> float:
         validate(cfg)
     if cfg.torch_threads:
         torch.set_num_threads(cfg.torch_threads)
-    env = make_env(cfg.env)
+    data = load_dataset(cfg) if is_offline(cfg) else None
+    env = None if data is not None else make_env(cfg.env)  # offline agents never step an env
     eval_env = make_env(cfg.env, shaping=False)
     video_env = None
     if cfg.video_every:
         video_env = make_env(cfg.env, shaping=False, render_mode="rgb_array")
     try:
-        agent = build_agent(cfg, env_spaces(env))
-        tracker = _open_run(client, cfg)
+        spaces = env_spaces(eval_env)
+        agent = build_agent(cfg, spaces, **({"dataset": data} if data is not None else {}))
+        tracker = _open_run(client, cfg, data)
         # From here on the run exists in MLflow: every exit path below sets its final status.
         status = tracking.FAILED
         try:
-            summary = _train_in_run(cfg, tracker, agent, env, eval_env, video_env, resume_state)
+            summary = _train_in_run(
+                cfg, tracker, agent, env, eval_env, video_env, resume_state, data
+            )
             status = tracking.FINISHED
         except KeyboardInterrupt:
             status = tracking.KILLED
@@ -147,7 +166,20 @@ def train(cfg: DictConfig, overrides: list[str] | tuple = ()) -> float:
     return value
 
 
-def _open_run(client, cfg: DictConfig) -> tracking.Tracker:
+def load_dataset(cfg: DictConfig):
+    """The offline dataset ``cfg.dataset``, checked against ``cfg.env``."""
+    from walkers import datasets  # Minari is imported only when a dataset is used
+
+    data = datasets.load(cfg.dataset)
+    if data.env_id is not None and data.env_id != cfg.env.id:
+        raise ConfigError(
+            f"dataset={data.id!r} was recorded on {data.env_id}, not on env.id={cfg.env.id!r}: "
+            f"pass the env it was recorded on"
+        )
+    return data
+
+
+def _open_run(client, cfg: DictConfig, data=None) -> tracking.Tracker:
     """Reopen the resumed run, or create a new one with the config as params and tags."""
     spool = Path(cfg.work_dir) / "spool"
     if cfg.resume:
@@ -159,7 +191,10 @@ def _open_run(client, cfg: DictConfig) -> tracking.Tracker:
         "seed": str(cfg.seed),
         "git_commit": commit,
         "mlflow.source.git.commit": commit,
+        tracking.X_AXIS_TAG: (OfflineTrainer if data is not None else Trainer).x_axis,
     }
+    if data is not None:
+        tags["dataset"] = data.id
     run_name = cfg.tracking.run_name or f"{algo}-{env_id}-s{cfg.seed}"
     if cfg.sweep.trial_number is not None:  # a trial of an Optuna study
         tags |= {"walkers.study": cfg.sweep.study, "walkers.trial": str(cfg.sweep.trial_number)}
@@ -171,13 +206,29 @@ def _open_run(client, cfg: DictConfig) -> tracking.Tracker:
     )
     try:
         tracker.log_params(tracking.flatten(OmegaConf.to_container(cfg, resolve=True)))
+        if data is not None:
+            tracker.log_params(_dataset_params(data))
     except BaseException:
         tracker.end(tracking.FAILED)
         raise
     return tracker
 
 
-def _train_in_run(cfg, tracker, agent, env, eval_env, video_env, resume_state) -> dict[str, float]:
+def _dataset_params(data) -> dict[str, str]:
+    returns = data.returns
+    return {
+        "dataset_stats.episodes": len(data.episodes),
+        "dataset_stats.steps": data.steps,
+        "dataset_stats.return_mean": f"{returns.mean():.2f}",
+        "dataset_stats.return_max": f"{returns.max():.2f}",
+        "dataset_stats.behaviour_return": data.behaviour_return,
+        "dataset_stats.random_return": data.random_return,
+    }
+
+
+def _train_in_run(
+    cfg, tracker, agent, env, eval_env, video_env, resume_state, data=None
+) -> dict[str, float]:
     reporter = TrialReporter(cfg.sweep) if cfg.sweep.trial_id is not None else None
     run_dir = Path(cfg.work_dir) / "runs" / tracker.run_id
     config_yaml = run_dir / "config.yaml"
@@ -197,7 +248,8 @@ def _train_in_run(cfg, tracker, agent, env, eval_env, video_env, resume_state) -
         video_every=cfg.video_every,
         divergence_patience=cfg.divergence_patience,
     )
-    trainer = Trainer(
+    offline = {"normalize": data.normalized} if data is not None else {}
+    trainer = (OfflineTrainer if data is not None else Trainer)(
         agent,
         env,
         eval_env,
@@ -207,6 +259,7 @@ def _train_in_run(cfg, tracker, agent, env, eval_env, video_env, resume_state) -
         checkpoint_extra={"config": OmegaConf.to_container(cfg, resolve=True)},
         video_env=video_env,
         on_evaluation=reporter,
+        **offline,
     )
     if resume_state is not None:
         trainer.restore(resume_state)

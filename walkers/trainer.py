@@ -25,7 +25,7 @@ from walkers.agents.base import Agent, Transition
 from walkers.agents.health import SKIPPED_IN_A_ROW
 from walkers.rollout import record_episodes, run_episodes
 from walkers.stats import run_summary
-from walkers.tracking import Tracker
+from walkers.tracking import ENV_STEPS, GRADIENT_STEPS, Tracker
 from walkers.video import write_gif
 
 EVAL_SEED_OFFSET = 10_000
@@ -66,6 +66,12 @@ class Progress:
 
 
 class Trainer:
+    """The online loop: env steps are the x-axis."""
+
+    x_axis = ENV_STEPS  # what `step` counts in every metric of the run
+    rate_metric = "perf/sps"  # env steps per second, whole loop
+    unit = "step"
+
     def __init__(
         self,
         agent: Agent,
@@ -130,16 +136,23 @@ class Trainer:
 
     # --- evaluation ---------------------------------------------------------------------------
     def evaluate(self) -> float:
-        p, s = self.progress, self.settings
+        """Greedy episodes on the eval env; logs ``eval/*``, keeps best.pt; returns the mean."""
         returns = run_episodes(
-            self.agent, self.eval_env, s.eval_episodes, s.seed + EVAL_SEED_OFFSET
+            self.agent, self.eval_env, self.settings.eval_episodes, self.eval_seed
         )
+        return self._record_evaluation(returns)
+
+    @property
+    def eval_seed(self) -> int:
+        return self.settings.seed + EVAL_SEED_OFFSET
+
+    def _record_evaluation(self, returns, extra: dict[str, float] | None = None) -> float:
+        p = self.progress
         mean = float(returns.mean())
         p.eval_steps.append(p.step)
         p.eval_means.append(mean)
-        self.tracker.log_metrics(
-            {"eval/return_mean": mean, "eval/return_std": float(returns.std())}, p.step
-        )
+        metrics = {"eval/return_mean": mean, "eval/return_std": float(returns.std())}
+        self.tracker.log_metrics(metrics | (extra or {}), p.step)
         if mean > p.best_eval:
             p.best_eval = mean
             self.save_checkpoint("best.pt")
@@ -147,9 +160,7 @@ class Trainer:
 
     def record_video(self) -> None:
         """Log a gif of one greedy episode (from the first eval start state) to ``videos/``."""
-        _, frames, fps = record_episodes(
-            self.agent, self.video_env, 1, self.settings.seed + EVAL_SEED_OFFSET
-        )
+        _, frames, fps = record_episodes(self.agent, self.video_env, 1, self.eval_seed)
         path = self.checkpoint_dir.parent / "videos" / f"step_{self.progress.step:08d}.gif"
         path.parent.mkdir(parents=True, exist_ok=True)
         write_gif(frames[:TRAINING_GIF_FRAMES], path, fps)
@@ -157,79 +168,141 @@ class Trainer:
 
     # --- the loop -----------------------------------------------------------------------------
     def run(self) -> dict[str, float]:
-        """Train until ``total_steps``; returns the ``final/*`` and ``perf/sps`` metrics.
+        """Train until ``total_steps``; returns the ``final/*`` and throughput metrics.
 
         On KeyboardInterrupt (Ctrl-C, or SIGTERM turned into one) a last checkpoint is saved
         before the exception propagates.
         """
-        s, p, agent, env, tracker = self.settings, self.progress, self.agent, self.env, self.tracker
-        # A fresh run seeds its first reset with `seed`; a resumed one starts a new episode seeded
-        # by the episode count (an interrupted episode cannot be continued).
-        obs, _ = env.reset(seed=s.seed + p.episodes)
+        s, p = self.settings, self.progress
         bar = tqdm(
             total=s.total_steps,
             initial=p.step,
-            unit="step",
+            unit=self.unit,
             disable=not s.progress,
             dynamic_ncols=True,
             mininterval=1.0,
         )
         start_step, start_time = p.step, time.perf_counter()
-        log_step, log_time = p.step, start_time
-        losses: dict[str, torch.Tensor] = {}
+        self._log_step, self._log_time = start_step, start_time
         try:
-            while p.step < s.total_steps:
-                action = agent.act(obs, explore=True)
-                next_obs, reward, terminated, truncated, info = env.step(action)
-                agent.observe(
-                    Transition(obs, action, float(reward), next_obs, terminated, truncated)
-                )
-                losses.update(agent.update())
-                p.step += 1
-                obs = next_obs
-                if terminated or truncated:
-                    p.episodes += 1
-                    episode = info["episode"]  # true return, recorded before any reward shaping
-                    tracker.log_metrics(
-                        {
-                            "train/episode_return": episode["r"],
-                            "train/episode_length": episode["l"],
-                        },
-                        p.step,
-                    )
-                    obs, _ = env.reset()
-                if p.step % s.log_every == 0:
-                    now = time.perf_counter()
-                    sps = (p.step - log_step) / (now - log_time)
-                    log_step, log_time = p.step, now
-                    scalars = {k: v.item() for k, v in losses.items()}
-                    tracker.log_metrics({"perf/sps": sps, **scalars}, p.step)
-                    self._check_divergence(scalars)
-                if p.step % s.eval_every == 0 or p.step == s.total_steps:
-                    mean = self.evaluate()
-                    bar.set_postfix(eval_return=f"{mean:.1f}", refresh=False)
-                    if (
-                        self.on_evaluation is not None
-                        and p.step < s.total_steps  # a finished run is never "stopped early"
-                        and self.on_evaluation(p.step, mean)
-                    ):
-                        self.stopped_early = True
-                        break
-                if s.video_every and p.step % s.video_every == 0:
-                    self.record_video()
-                if p.step % s.checkpoint_every == 0 and p.step < s.total_steps:  # end: below
-                    self._checkpoint_and_flush()
-                if p.step % 100 == 0:
-                    bar.update(p.step - bar.n)
+            self._loop(bar)
         except KeyboardInterrupt:
             self._checkpoint_and_flush()
             raise
         finally:
             bar.close()
         elapsed = time.perf_counter() - start_time
-        summary = run_summary(p.eval_steps, p.eval_means, s.threshold)
+        summary = self.summary()
         if p.step > start_step:
-            summary["perf/sps"] = (p.step - start_step) / elapsed
-        tracker.log_metrics(summary, p.step)
+            summary[self.rate_metric] = (p.step - start_step) / elapsed
+        self.tracker.log_metrics(summary, p.step)
         self._checkpoint_and_flush()
+        return summary
+
+    def summary(self) -> dict[str, float]:
+        p = self.progress
+        return run_summary(p.eval_steps, p.eval_means, self.settings.threshold)
+
+    def _loop(self, bar: tqdm) -> None:
+        """Act, step, observe, update until the budget is spent (or a pruner stops the run)."""
+        s, p, agent, env, tracker = self.settings, self.progress, self.agent, self.env, self.tracker
+        # A fresh run seeds its first reset with `seed`; a resumed one starts a new episode seeded
+        # by the episode count (an interrupted episode cannot be continued).
+        obs, _ = env.reset(seed=s.seed + p.episodes)
+        losses: dict[str, torch.Tensor] = {}
+        while p.step < s.total_steps:
+            action = agent.act(obs, explore=True)
+            next_obs, reward, terminated, truncated, info = env.step(action)
+            agent.observe(Transition(obs, action, float(reward), next_obs, terminated, truncated))
+            losses.update(agent.update())
+            p.step += 1
+            obs = next_obs
+            if terminated or truncated:
+                p.episodes += 1
+                episode = info["episode"]  # true return, recorded before any reward shaping
+                tracker.log_metrics(
+                    {"train/episode_return": episode["r"], "train/episode_length": episode["l"]},
+                    p.step,
+                )
+                obs, _ = env.reset()
+            if self._after_step(losses, bar):
+                return
+
+    def _after_step(self, losses: dict[str, torch.Tensor], bar: tqdm) -> bool:
+        """Log, evaluate, film, checkpoint when due; True when the run should stop early."""
+        s, p = self.settings, self.progress
+        if p.step % s.log_every == 0:
+            now = time.perf_counter()
+            rate = (p.step - self._log_step) / (now - self._log_time)
+            self._log_step, self._log_time = p.step, now
+            scalars = {k: v.item() for k, v in losses.items()}
+            self.tracker.log_metrics({self.rate_metric: rate, **scalars}, p.step)
+            self._check_divergence(scalars)
+        if p.step % s.eval_every == 0 or p.step == s.total_steps:
+            mean = self.evaluate()
+            bar.set_postfix(eval_return=f"{mean:.1f}", refresh=False)
+            if (
+                self.on_evaluation is not None
+                and p.step < s.total_steps  # a finished run is never "stopped early"
+                and self.on_evaluation(p.step, mean)
+            ):
+                self.stopped_early = True
+                return True
+        if s.video_every and p.step % s.video_every == 0:
+            self.record_video()
+        if p.step % s.checkpoint_every == 0 and p.step < s.total_steps:  # the end: in run()
+            self._checkpoint_and_flush()
+        if p.step % 100 == 0:
+            bar.update(p.step - bar.n)
+        return False
+
+
+class OfflineTrainer(Trainer):
+    """The loop for offline agents: gradient steps on a fixed dataset, no env steps.
+
+    The x-axis (``step`` of every metric, ``total_steps``, ``eval_every`` ...) counts gradient
+    steps. Each evaluation runs ``eval_episodes`` per target return of the agent; the first target
+    is the headline (``eval/return_mean``), every target is also logged on its own
+    (``eval/target_<R>/return_mean``), and, when the dataset has reference returns, as a
+    normalized score (0: random policy, 100: the dataset's behaviour policy).
+    """
+
+    x_axis = GRADIENT_STEPS
+    rate_metric = "perf/gradient_steps_per_s"
+    unit = "grad step"
+
+    def __init__(self, *args, normalize: Callable[[float], float | None] | None = None, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.normalize = normalize or (lambda _: None)
+
+    def _loop(self, bar: tqdm) -> None:
+        p = self.progress
+        while p.step < self.settings.total_steps:
+            losses = self.agent.update()
+            p.step += 1
+            if self._after_step(losses, bar):
+                return
+
+    def evaluate(self) -> float:
+        agent, episodes, extra, headline = self.agent, self.settings.eval_episodes, {}, None
+        for target in agent.target_returns:
+            agent.target_return = target
+            returns = run_episodes(agent, self.eval_env, episodes, self.eval_seed)
+            name = f"eval/target_{target:g}"
+            extra[f"{name}/return_mean"] = float(returns.mean())
+            score = self.normalize(float(returns.mean()))
+            if score is not None:
+                extra[f"{name}/normalized_score"] = score
+            headline = returns if headline is None else headline
+        agent.target_return = agent.target_returns[0]
+        score = self.normalize(float(headline.mean()))
+        if score is not None:
+            extra["eval/normalized_score"] = score
+        return self._record_evaluation(headline, extra)
+
+    def summary(self) -> dict[str, float]:
+        summary = super().summary()
+        score = self.normalize(summary.get("final/return_mean", float("nan")))
+        if score is not None:
+            summary["final/normalized_score"] = score
         return summary

@@ -91,12 +91,48 @@ RULES: list[tuple[str, callable, str]] = [
     ("algo.policy_noise", non_negative, "a number >= 0"),
     ("algo.noise_clip", non_negative, "a number >= 0"),
     ("algo.exploration_noise", non_negative, "a number >= 0"),
+    ("algo.context_length", positive_int, "an integer > 0"),
+    ("algo.embed_dim", positive_int, "an integer > 0"),
+    ("algo.n_layers", positive_int, "an integer > 0"),
+    ("algo.n_heads", positive_int, "an integer > 0"),
+    ("algo.dropout", lambda v: _number(v) and 0 <= v < 1, "a number in [0, 1)"),
+    ("algo.weight_decay", non_negative, "a number >= 0"),
+    ("algo.warmup_steps", non_negative_int, "an integer >= 0"),
+    ("algo.grad_clip", positive, "a number > 0"),
+    ("algo.return_scale", positive, "a number > 0"),
+    ("algo.max_episode_steps", positive_int, "an integer > 0"),
+    (
+        "algo.target_returns",
+        lambda v: v is None or (isinstance(v, list) and len(v) > 0 and all(map(_number, v))),
+        "null (the dataset's best return) or a non-empty list of numbers, e.g. [5000,2500]",
+    ),
     ("env.max_episode_steps", lambda v: v is None or positive_int(v), "null or an integer > 0"),
     ("env.threshold", _number, "a number"),
     ("env.learning_starts", non_negative_int, "an integer >= 0"),
 ]
 
 _MISSING = object()
+
+
+def is_offline(cfg: DictConfig) -> bool:
+    """Whether ``cfg.algo`` learns from a dataset (its agent class says ``offline = True``)."""
+    from hydra.utils import get_class
+
+    return bool(getattr(get_class(cfg.algo._target_), "offline", False))
+
+
+def _check_dataset(cfg: DictConfig) -> None:
+    dataset = cfg.get("dataset")
+    if is_offline(cfg) and not dataset:
+        raise ConfigError(
+            f"dataset={dataset!r} is not allowed: algo={cfg.algo.name} learns offline and needs "
+            "dataset=<Minari dataset id> (record one with `python -m walkers.collect`)"
+        )
+    if not is_offline(cfg) and dataset:
+        raise ConfigError(
+            f"dataset={dataset!r} is not allowed with algo={cfg.algo.name}: only offline "
+            "algorithms (dt) train on a dataset; online ones collect their own experience"
+        )
 
 
 def check(key: str, value, ok: bool, allowed: str) -> None:
@@ -119,6 +155,7 @@ def validate(cfg: DictConfig) -> None:
         cfg.eval_every <= cfg.total_steps,
         f"at most total_steps ({cfg.total_steps})",
     )
+    _check_dataset(cfg)
     algo = cfg.algo
     if "batch_size" in algo and "buffer_size" in algo:
         check(

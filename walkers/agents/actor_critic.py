@@ -153,7 +153,7 @@ class ActorCritic(Agent):
         return action.astype(np.float32)
 
     def observe(self, t: Transition) -> None:
-        self.buffer.add(t.obs, t.action, t.reward, t.next_obs, t.terminated)
+        self.buffer.add(t.obs, t.action, t.reward, t.next_obs, t.terminated, t.episode_over)
         self.steps += 1
         if t.episode_over:
             self.noise.reset()

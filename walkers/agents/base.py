@@ -8,6 +8,10 @@ and the trainer drives it with four calls per env step:
     agent.observe(Transition(obs, action, reward, next_obs, terminated, truncated))
     losses = agent.update()        # {} when it is not time to learn (warm-up, mid-episode ...)
 
+Offline agents (``offline = True``, e.g. the Decision Transformer) learn from a dataset instead:
+the trainer calls only ``update`` in a loop. Sequence policies also see episode boundaries and
+rewards while they act (``begin_episode``, ``record_reward``); the others ignore both.
+
 ``update`` returns detached scalar tensors (not floats) so the hot loop never forces a
 device sync; the trainer converts them only when it logs.
 """
@@ -39,6 +43,13 @@ class Agent(ABC):
     """Base for all algorithms. Subclasses keep their networks and optimizers as attributes."""
 
     device: torch.device
+    offline: bool = False  # learns from a fixed dataset (``dataset=``), never from env steps
+
+    def begin_episode(self) -> None:  # noqa: B027 (an optional hook)
+        """A new episode starts (called by rollouts before the first ``act``)."""
+
+    def record_reward(self, reward: float) -> None:  # noqa: B027 (an optional hook)
+        """The reward the last ``act``'s action earned (called by rollouts)."""
 
     @abstractmethod
     def act(self, obs: np.ndarray, explore: bool) -> np.ndarray:

@@ -1,0 +1,268 @@
+"""Offline RL end to end: datasets recorded from the platform's own agents, a Decision Transformer
+trained on them, and DT runs beside TD3 in the A/B report.
+
+One module-scoped chain, each step real: a briefly trained TD3 on Pendulum -> a Minari dataset
+mixing it with a random policy -> a DT trained on that dataset -> a report.
+"""
+
+from __future__ import annotations
+
+import json
+
+import minari
+import numpy as np
+import pytest
+
+from tests.conftest import (
+    PENDULUM_TD3_GROUP,
+    PENDULUM_TD3_STEPS,
+    all_runs,
+    compose_cfg,
+    metric_steps,
+    one_line_error,
+    run_cli,
+)
+from walkers import checkpoints, datasets
+from walkers.buffers import replay_episodes
+from walkers.collect import collect, play
+from walkers.compare import compare
+from walkers.envs import make_env
+from walkers.errors import ConfigError
+from walkers.train import agent_from_checkpoint, train
+from walkers.validate import validate
+
+EXPERT = "walkers/pendulum/td3-v0"  # greedy TD3 episodes: returns from about -1500 to 0
+MIXED = "walkers/pendulum/mixed-v0"  # 3 random-policy episodes, then 3 noisy TD3 ones
+EPISODES = 40
+#: A small DT that learns Pendulum in a minute (the reference sizes are for MuJoCo walkers).
+SMALL_DT = [
+    "algo.embed_dim=64",
+    "algo.n_layers=2",
+    "algo.context_length=10",
+    "algo.dropout=0.0",
+    "algo.lr=1e-3",
+    "algo.warmup_steps=100",
+]
+DT_STEPS = 1500
+HIGH, LOW = -150, -1200  # target returns: a swing-up policy's, a random policy's
+
+pytestmark = pytest.mark.xdist_group(PENDULUM_TD3_GROUP)
+
+
+@pytest.fixture(scope="module")
+def offline(pendulum_td3):
+    """Datasets recorded from the TD3 run and a DT trained on one, in the TD3 run's store.
+
+    MINARI_DATASETS_PATH points into the store's folder while the module's tests run.
+    """
+    store, td3_run = pendulum_td3, pendulum_td3["run"]
+    minari_root = store["path"] / "minari"
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("MINARI_DATASETS_PATH", str(minari_root))
+        collected = run_cli(
+            [
+                f"run_id={td3_run.info.run_id}",
+                f"episodes={EPISODES}",
+                f"dataset={EXPERT.removesuffix('-v0')}",
+                *store["overrides"],
+            ],
+            cwd=store["path"],
+            module="walkers.collect",
+            env_overrides={"MINARI_DATASETS_PATH": str(minari_root)},
+        )
+        assert collected.returncode == 0, collected.stderr[-3000:]
+        mixed = collect(
+            compose_cfg(
+                [
+                    f"run_id=[random,{td3_run.info.run_id}]",
+                    "env=pendulum",
+                    "episodes=3",
+                    "exploration_noise=0.1",
+                    f"dataset={MIXED}",
+                    "log_to_mlflow=false",
+                    *store["overrides"],
+                ],
+                config_name="collect",
+            )
+        )
+        train(
+            compose_cfg(
+                [
+                    "algo=dt",
+                    "env=pendulum",
+                    f"dataset={EXPERT}",
+                    f"total_steps={DT_STEPS}",
+                    "eval_every=750",
+                    "checkpoint_every=750",
+                    "log_every=100",
+                    "eval_episodes=4",
+                    f"algo.target_returns=[{HIGH},{LOW}]",
+                    "progress=false",
+                    *SMALL_DT,
+                    *store["overrides"],
+                ]
+            )
+        )
+        yield {
+            **store,
+            "td3_run": td3_run,
+            "collect_stdout": collected.stdout,
+            "mixed": mixed,
+            "minari_root": minari_root,
+        }
+
+
+def _run(store, algo: str):
+    (run,) = [r for r in all_runs(store["client"]) if r.data.tags.get("algo") == algo]
+    return run
+
+
+def _last(store, run, key: str) -> float:
+    return store["client"].get_metric_history(run.info.run_id, key)[-1].value
+
+
+def test_collected_episodes_load_back_the_same(offline):
+    """Mixed policies in one dataset; replaying them from the same seeds gives the same data."""
+    data = datasets.load(MIXED)
+    assert data.env_id == "Pendulum-v1" and len(data.episodes) == 6
+    assert offline["mixed"]["episodes"] == 6 and len(offline["mixed"]["sources"]) == 2
+    shapes = {(e.observations.shape, e.actions.shape) for e in data.episodes}
+    assert shapes == {((201, 3), (200, 1))}
+    env = make_env({"id": "Pendulum-v1", "max_episode_steps": 200}, shaping=False)
+    rng = np.random.default_rng(0)  # collect's default seed
+    again = play(None, env, 3, seed=0, noise=0.0, rng=rng)  # policy 0: random, seeds 0..2
+    state = checkpoints.load(
+        offline["client"].download_artifacts(
+            offline["td3_run"].info.run_id, "checkpoints/best.pt", str(offline["path"] / "dl")
+        )
+    )
+    _, td3 = agent_from_checkpoint(state, env, "cpu")
+    again += play(td3, env, 3, seed=3, noise=0.1, rng=rng)  # policy 1: noisy TD3, seeds 3..5
+    env.close()
+    for stored, replayed in zip(data.episodes, again, strict=True):
+        np.testing.assert_array_equal(stored.observations, replayed.observations)
+        np.testing.assert_array_equal(stored.actions, replayed.actions)
+        np.testing.assert_allclose(stored.rewards, replayed.rewards)
+        assert stored.truncations[-1] and not stored.terminations.any()
+
+
+def test_dataset_stats_are_printed_logged_and_stored(offline):
+    data = datasets.load(EXPERT)
+    returns = data.returns
+    client = offline["client"]
+    (run,) = [r for r in all_runs(client) if r.data.tags.get("walkers.kind") == "dataset"]
+    assert run.info.status == "FINISHED" and run.data.tags["dataset"] == EXPERT
+    assert run.data.metrics["dataset/episodes"] == EPISODES
+    assert run.data.metrics["dataset/return_mean"] == pytest.approx(returns.mean())
+    logged = [m.value for m in client.get_metric_history(run.info.run_id, "dataset/episode_return")]
+    np.testing.assert_allclose(sorted(logged), sorted(returns))
+    # the normalization references: the behaviour policy's mean return, a random policy's
+    assert data.behaviour_return == pytest.approx(returns.mean())
+    assert data.random_return < -900 < data.behaviour_return
+    assert f"dataset {EXPERT}: {EPISODES} episodes" in offline["collect_stdout"]
+    assert (offline["minari_root"] / EXPERT / "data").is_dir()
+    artifacts = {a.path for a in client.list_artifacts(run.info.run_id)}
+    assert {"stats.json", "returns.png"} <= artifacts
+
+
+def test_replay_dataset_holds_every_training_episode(offline):
+    """The run's replay buffer cut into episodes: the same returns as its training episodes."""
+    run_id = offline["td3_run"].info.run_id
+    path = offline["client"].download_artifacts(
+        run_id, "checkpoints/last.pt", str(offline["path"] / "dl-last")
+    )
+    episodes = replay_episodes(checkpoints.load(path)["agent"]["buffer"])
+    trained = [
+        m.value for m in offline["client"].get_metric_history(run_id, "train/episode_return")
+    ]
+    assert len(episodes) == PENDULUM_TD3_STEPS // 200 == len(trained)
+    np.testing.assert_allclose([e.episode_return for e in episodes], trained, rtol=1e-5)
+    assert all(e.truncations[-1] and not e.terminations.any() for e in episodes)
+
+
+def test_dt_clearly_beats_a_random_policy(offline):
+    run = _run(offline, "dt")
+    data = datasets.load(EXPERT)
+    final = _last(offline, run, "eval/return_mean")  # conditioned on HIGH
+    print("DT", final, "random policy", data.random_return, "dataset", data.returns.mean())
+    assert final > data.random_return + 500
+    score = _last(offline, run, "eval/normalized_score")
+    assert score == pytest.approx(data.normalized(final))
+    assert score > 50  # at least half way from a random policy to the dataset's policy
+
+
+def test_higher_target_return_yields_higher_returns(offline):
+    run = _run(offline, "dt")
+    high = _last(offline, run, f"eval/target_{HIGH}/return_mean")
+    low = _last(offline, run, f"eval/target_{LOW}/return_mean")
+    print("target", HIGH, "->", high, "; target", LOW, "->", low)
+    assert high > low + 300
+
+
+def test_report_puts_dt_beside_td3(offline, tmp_path):
+    comparison, out, _ = compare(
+        compose_cfg(
+            [
+                *offline["overrides"],
+                "env=pendulum",
+                "algos=[td3,dt]",
+                f"out={tmp_path}",
+                "n_resamples=200",
+            ],
+            config_name="compare",
+        )
+    )
+    dt = next(r for r in comparison.algos if r.algo == "dt")
+    assert dt.x_axis == "gradient_steps" and dt.dataset == EXPERT
+    assert comparison.budgets == {"env_steps": PENDULUM_TD3_STEPS, "gradient_steps": DT_STEPS}
+    assert [p.quantity for p in comparison.pairs] == ["score"]  # no AUC across x-axes
+    report = (out / "report.md").read_text()
+    assert f"dt (offline, {EXPERT})" in report and f"{DT_STEPS:,} gradient steps" in report
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["algos"]["dt"]["dataset"] == EXPERT
+    assert (out / "learning_curves.png").stat().st_size > 0
+
+
+def test_dt_run_counts_gradient_steps_and_resumes(offline):
+    run = _run(offline, "dt")
+    assert run.info.status == "FINISHED"
+    assert run.data.tags["walkers.x_axis"] == "gradient_steps"
+    assert run.data.tags["dataset"] == EXPERT
+    assert run.data.params["dataset_stats.episodes"] == str(EPISODES)
+    client = offline["client"]
+    assert metric_steps(client, run.info.run_id, "eval/return_mean") == [750, 1500]
+    assert "perf/gradient_steps_per_s" in run.data.metrics
+    assert {a.path for a in client.list_artifacts(run.info.run_id, "checkpoints")} == {
+        "checkpoints/best.pt",
+        "checkpoints/last.pt",
+    }
+    # 100 more gradient steps: the same run continues, no step logged twice.
+    more = DT_STEPS + 100
+    train(
+        compose_cfg([f"resume={run.info.run_id}", f"total_steps={more}", *offline["overrides"]]),
+        overrides=[f"total_steps={more}"],
+    )
+    steps = metric_steps(client, run.info.run_id, "loss/action")
+    assert steps == sorted(set(steps)) and steps[-1] == more
+    assert client.get_run(run.info.run_id).info.status == "FINISHED"
+
+
+def test_offline_bad_input(offline):
+    with pytest.raises(ConfigError, match=r"dataset=None is not allowed: algo=dt"):
+        validate(compose_cfg(["algo=dt", "env=pendulum"]))
+    with pytest.raises(ConfigError, match=r"dataset='x' is not allowed with algo=td3"):
+        validate(compose_cfg(["algo=td3", "dataset=x"]))
+    with pytest.raises(ConfigError, match=rf"dataset='nope' is not a local.*{EXPERT}"):
+        train(compose_cfg(["algo=dt", "env=pendulum", "dataset=nope", *offline["overrides"]]))
+    with pytest.raises(ConfigError, match=r"recorded on Pendulum-v1, not on env.id='Hopper-v5'"):
+        train(compose_cfg(["algo=dt", "env=hopper", f"dataset={EXPERT}", *offline["overrides"]]))
+    before = len(all_runs(offline["client"]))
+    result = run_cli(
+        [f"run_id={offline['td3_run'].info.run_id}", f"dataset={EXPERT}", *offline["overrides"]],
+        cwd=offline["path"],
+        module="walkers.collect",
+        env_overrides={"MINARI_DATASETS_PATH": str(offline["minari_root"])},
+    )
+    assert "already exists" in one_line_error(result) and "overwrite=true" in result.stderr
+    assert len(all_runs(offline["client"])) == before  # no run created, nothing overwritten
+    assert minari.load_dataset(EXPERT).total_episodes == EPISODES

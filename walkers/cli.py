@@ -14,6 +14,7 @@ from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.errors import ConfigCompositionException, MissingConfigException, OverrideParseException
 
 from walkers import PROJECT_ROOT
+from walkers.errors import CheckpointError, ConfigError
 
 CONF_DIR = str(PROJECT_ROOT / "conf")
 #: Sweep values Hydra can enumerate (a,b,c / range()); Optuna's interval() etc. are the sweeper's.
@@ -98,4 +99,14 @@ def exit_on_bad_overrides(config_name: str, args: list[str] | None = None) -> No
                 compose(config_name=config_name, overrides=overrides)
     except (MissingConfigException, ConfigCompositionException, OverrideParseException) as e:
         print(f"error: {_one_line(e, args)}", file=sys.stderr)
+        sys.exit(2)
+
+
+def or_exit(command, cfg):
+    """``command(cfg)``; bad input (a :class:`ConfigError` or :class:`CheckpointError`) becomes
+    ``error: ...`` on one line of stderr and exit 2."""
+    try:
+        return command(cfg)
+    except (ConfigError, CheckpointError) as e:
+        print(f"error: {e}", file=sys.stderr)
         sys.exit(2)

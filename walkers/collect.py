@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import json
 import logging
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -29,7 +28,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from walkers import checkpoints, tracking
 from walkers.agents.base import Agent
 from walkers.buffers import Episode, replay_episodes
-from walkers.cli import exit_on_bad_overrides
+from walkers.cli import exit_on_bad_overrides, or_exit
 from walkers.envs import make_env
 from walkers.errors import CheckpointError, ConfigError
 from walkers.evaluate import fetch_checkpoint
@@ -240,17 +239,13 @@ def _log_dataset_run(client, cfg: DictConfig, data, stats: dict) -> str:
     matplotlib.use("Agg")
     from matplotlib import pyplot as plt
 
-    from walkers.compare import KIND_TAG
-
-    tracker = tracking.Tracker.start(
+    with tracking.side_run(
         client,
         cfg.tracking.experiment,
         run_name=f"dataset-{data.id}",
-        tags={KIND_TAG: "dataset", "env": data.env_id, "dataset": data.id},
+        tags={tracking.KIND_TAG: "dataset", "env": data.env_id, "dataset": data.id},
         spool_dir=Path(cfg.work_dir) / "spool",
-    )
-    status = tracking.FAILED
-    try:
+    ) as tracker:
         tracker.log_params(
             {
                 "dataset": data.id,
@@ -285,19 +280,12 @@ def _log_dataset_run(client, cfg: DictConfig, data, stats: dict) -> str:
         plt.close(fig)
         for name in ("stats.json", "returns.png"):
             tracker.log_artifact(out / name)
-        status = tracking.FINISHED
-    finally:
-        tracker.end(status)
     return tracker.url
 
 
 @hydra.main(config_path="../conf", config_name="collect")
 def main(cfg: DictConfig) -> None:
-    try:
-        stats = collect(cfg)
-    except (ConfigError, CheckpointError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        sys.exit(2)
+    stats = or_exit(collect, cfg)
     print(
         f"dataset {stats['dataset']}: {stats['episodes']} episodes, {stats['steps']} steps, "
         f"return {stats['return_mean']:.1f} ± {stats['return_std']:.1f} "

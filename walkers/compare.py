@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import logging
 import math
-import sys
 from collections import Counter
 from dataclasses import dataclass, field
 from itertools import combinations
@@ -27,18 +26,16 @@ import numpy as np
 from omegaconf import DictConfig
 
 from walkers import stats, tracking
-from walkers.cli import exit_on_bad_overrides
+from walkers.cli import exit_on_bad_overrides, or_exit
 from walkers.errors import ConfigError
 from walkers.report import AXIS_NAMES, verdict, write_report
-from walkers.tracking import ENV_STEPS, GRADIENT_STEPS
+from walkers.tracking import ENV_STEPS, GRADIENT_STEPS, KIND_TAG
 from walkers.trial import PRUNED_TAG
 
 log = logging.getLogger("walkers")
 
 CURVE_METRIC = "eval/return_mean"
 SCORES = ("final/return_mean", "final/return_last10", "final/auc")
-#: Tag that marks runs which are not training runs (reports, sweep parents, datasets).
-KIND_TAG = "walkers.kind"
 
 
 def x_axis(run) -> str:
@@ -389,7 +386,7 @@ def compare(cfg: DictConfig) -> tuple[Comparison, Path, str | None]:
 def _log_report(client, cfg: DictConfig, comparison: Comparison, files: list[Path]) -> str:
     """The report as an MLflow run of its own, beside the runs it compares."""
     names = [r.algo for r in comparison.algos]
-    tracker = tracking.Tracker.start(
+    with tracking.side_run(
         client,
         cfg.tracking.experiment,
         run_name=f"report-{'-vs-'.join(names)}-{comparison.env_id}",
@@ -400,9 +397,7 @@ def _log_report(client, cfg: DictConfig, comparison: Comparison, files: list[Pat
             "mlflow.note.content": verdict(comparison),
         },
         spool_dir=Path(cfg.work_dir) / "spool",
-    )
-    status = tracking.FAILED
-    try:
+    ) as tracker:
         tracker.log_params(
             {
                 "score": comparison.score,
@@ -423,19 +418,12 @@ def _log_report(client, cfg: DictConfig, comparison: Comparison, files: list[Pat
         )
         for path in files:
             tracker.log_artifact(path)
-        status = tracking.FINISHED
-    finally:
-        tracker.end(status)
     return tracker.url
 
 
 @hydra.main(config_path="../conf", config_name="compare")
 def main(cfg: DictConfig) -> None:
-    try:
-        comparison, out, url = compare(cfg)
-    except ConfigError as e:
-        print(f"error: {e}", file=sys.stderr)
-        sys.exit(2)
+    comparison, out, url = or_exit(compare, cfg)
     print(verdict(comparison))
     print(f"report: {out / 'report.md'}")
     if url:

@@ -12,16 +12,15 @@ from __future__ import annotations
 
 import json
 import logging
-import sys
 from pathlib import Path
 
 import hydra
 from omegaconf import DictConfig
 
 from walkers import checkpoints, tracking
-from walkers.cli import exit_on_bad_overrides
+from walkers.cli import exit_on_bad_overrides, or_exit
 from walkers.envs import make_env
-from walkers.errors import CheckpointError, ConfigError
+from walkers.errors import ConfigError
 from walkers.rollout import record_episodes
 from walkers.trainer import EVAL_SEED_OFFSET
 from walkers.video import write_videos
@@ -71,6 +70,13 @@ def evaluate(cfg: DictConfig) -> dict:
     env = make_env(state["config"]["env"], shaping=False, render_mode=cfg.render)
     try:
         run_cfg, agent = agent_from_checkpoint(state, env, cfg.device)
+        if cfg.target_return is not None:
+            if not hasattr(agent, "target_return"):
+                raise ConfigError(
+                    f"target_return={cfg.target_return!r} is not allowed: the run's algorithm "
+                    f"({run_cfg.algo.name}) is not return-conditioned (only dt is)"
+                )
+            agent.target_return = float(cfg.target_return)
         seed = cfg.seed if cfg.seed is not None else run_cfg.seed + EVAL_SEED_OFFSET
         record = cfg.video and cfg.render == "rgb_array"
         returns, frames, fps = record_episodes(
@@ -102,11 +108,7 @@ def evaluate(cfg: DictConfig) -> dict:
 
 @hydra.main(config_path="../conf", config_name="evaluate")
 def main(cfg: DictConfig) -> None:
-    try:
-        result = evaluate(cfg)
-    except (ConfigError, CheckpointError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        sys.exit(2)
+    result = or_exit(evaluate, cfg)
     print(
         f"return over {result['episodes']} episodes: "
         f"{result['return_mean']:.1f} ± {result['return_std']:.1f} "

@@ -9,7 +9,6 @@ per-trial budget of the sweep is left out, so the preset trains with the full de
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import hydra
@@ -19,7 +18,7 @@ from hydra.core.override_parser.overrides_parser import OverridesParser
 from omegaconf import DictConfig, OmegaConf
 
 from walkers import PROJECT_ROOT
-from walkers.cli import exit_on_bad_overrides
+from walkers.cli import exit_on_bad_overrides, or_exit
 from walkers.errors import ConfigError
 from walkers.sweeper import absolute_storage
 
@@ -87,11 +86,7 @@ def write_preset(cfg: DictConfig) -> Path:
 
 @hydra.main(config_path="../conf", config_name="preset")
 def main(cfg: DictConfig) -> None:
-    try:
-        path = write_preset(cfg)
-    except ConfigError as e:
-        print(f"error: {e}", file=sys.stderr)
-        sys.exit(2)
+    path = or_exit(write_preset, cfg)
     print(f"wrote {path}")
     print(f"train with: python -m walkers.train experiment={path.stem}")
 

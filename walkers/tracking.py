@@ -13,6 +13,7 @@ import json
 import logging
 import time
 from collections.abc import Mapping
+from contextlib import contextmanager
 from pathlib import Path
 
 from mlflow.entities import Metric, Param, RunTag
@@ -26,6 +27,8 @@ log = logging.getLogger(__name__)
 MLFLOW_MAX_PARAMS_PER_BATCH = 100
 #: Statuses a run ends with.
 FINISHED, FAILED, KILLED = "FINISHED", "FAILED", "KILLED"
+#: Tag that marks runs which are not training runs (reports, sweep parents, datasets).
+KIND_TAG = "walkers.kind"
 #: Run tag naming what the step of a run's metrics counts; runs without it count env steps.
 X_AXIS_TAG = "walkers.x_axis"
 ENV_STEPS, GRADIENT_STEPS = "env_steps", "gradient_steps"
@@ -136,6 +139,21 @@ def flatten(d: Mapping, prefix: str = "") -> dict[str, str]:
         else:
             out[name] = str(value)
     return out
+
+
+@contextmanager
+def side_run(client: MlflowClient, experiment: str, run_name: str, tags: dict, spool_dir):
+    """A run that records something other than training (a report, a dataset's stats).
+
+    It ends FINISHED when the ``with`` block completes, FAILED when it raises.
+    """
+    tracker = Tracker.start(client, experiment, run_name=run_name, tags=tags, spool_dir=spool_dir)
+    status = FAILED
+    try:
+        yield tracker
+        status = FINISHED
+    finally:
+        tracker.end(status)
 
 
 class Tracker:

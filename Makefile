@@ -31,7 +31,7 @@ compare: $(STAMP)  ## A/B report from finished runs (ARGS="env=walker2d algos=[r
 	$(PY) -m walkers.compare $(ARGS)
 
 test: $(STAMP)  ## run the test suite (real tiny trainings, sweeps, offline RL, reports; one worker per core)
-	$(PY) -m pytest -q -n auto --dist loadgroup --durations=10 $(ARGS)
+	$(PY) -m pytest -q -n auto --dist loadscope --durations=10 $(ARGS)
 
 bench: $(STAMP)  ## benchmarks: the TD3 update vs a plain eager implementation, side by side
 	$(PY) benchmarks/bench_update.py $(ARGS)

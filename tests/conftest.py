@@ -132,38 +132,3 @@ def one_line_error(result: subprocess.CompletedProcess) -> str:
 def metric_steps(client: MlflowClient, run_id: str, key: str) -> list[int]:
     return [m.step for m in client.get_metric_history(run_id, key)]
 
-
-#: The xdist group of the tests that share :func:`pendulum_td3` (one worker builds it once).
-PENDULUM_TD3_GROUP = "pendulum_td3"
-PENDULUM_TD3_STEPS = 8000
-
-
-@pytest.fixture(scope="session")
-def pendulum_td3(tmp_path_factory, _empty_store_file) -> dict:
-    """TD3 trained briefly on Pendulum-v1 (64-64 nets, 8k steps, replay buffer saved) in a store.
-
-    The learning test checks that it learned; the offline tests record datasets from it and put
-    their Decision Transformer runs beside it in the same store.
-    """
-    from walkers.train import train
-
-    store = new_store(tmp_path_factory.mktemp("pendulum_td3"), _empty_store_file)
-    train(
-        compose_cfg(
-            [
-                "algo=td3",
-                "env=pendulum",
-                "seed=0",
-                f"total_steps={PENDULUM_TD3_STEPS}",
-                "eval_every=2000",
-                "eval_episodes=5",
-                "checkpoint_every=4000",
-                "algo.hidden_sizes=[64,64]",
-                "save_buffer=true",
-                "progress=false",
-                *store["overrides"],
-            ]
-        )
-    )
-    (run,) = all_runs(store["client"])
-    return {**store, "run": run}

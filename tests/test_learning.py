@@ -3,9 +3,8 @@
 from __future__ import annotations
 
 import numpy as np
-import pytest
 
-from tests.conftest import PENDULUM_TD3_GROUP, all_runs, compose_cfg
+from tests.conftest import all_runs, compose_cfg
 from walkers.train import train
 
 
@@ -20,20 +19,8 @@ def learning_run(store, overrides: list[str]) -> dict[str, list[float]]:
     return history
 
 
-# A random policy scores about -1200 on Pendulum-v1; a swing-up policy about -150.
-
-
-@pytest.mark.xdist_group(PENDULUM_TD3_GROUP)
-def test_td3_learns_pendulum(pendulum_td3):
-    history = [
-        m.value
-        for m in pendulum_td3["client"].get_metric_history(
-            pendulum_td3["run"].info.run_id, "eval/return_mean"
-        )
-    ]
-    print(history)
-    assert history[0] < -900, history  # it started from a poor policy ...
-    assert max(history) >= -300, history  # ... and learned to swing up
+# A random policy scores about -1200 on Pendulum-v1; a swing-up policy about -150. TD3's learning
+# test is the first step of the offline chain in test_offline.py (its run feeds the datasets).
 
 
 def test_ddpg_learns_pendulum(store):

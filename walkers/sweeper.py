@@ -240,6 +240,10 @@ def open_parent_run(
         client,
         config.tracking.experiment,
         run_name=f"study-{study.study_name}",
-        tags={tracking.KIND_TAG: "study", STUDY_TAG: study.study_name, "optuna.storage": str(storage)},
+        tags={
+            tracking.KIND_TAG: "study",
+            STUDY_TAG: study.study_name,
+            "optuna.storage": str(storage),
+        },
         spool_dir=spool,
     )

@@ -10,9 +10,11 @@ from __future__ import annotations
 
 import json
 
+import gymnasium as gym
 import minari
 import numpy as np
 import pytest
+from minari.data_collector import EpisodeBuffer
 
 from tests.conftest import (
     all_runs,
@@ -300,3 +302,58 @@ def test_offline_bad_input(offline):
     assert "already exists" in one_line_error(result) and "overwrite=true" in result.stderr
     assert len(all_runs(offline["client"])) == before  # no run created, nothing overwritten
     assert minari.load_dataset(EXPERT).total_episodes == EPISODES
+
+
+@pytest.mark.filterwarnings("ignore::UserWarning")  # Minari asks for author, description ...
+def test_a_dataset_made_elsewhere_trains_too(offline):
+    """Any local Minari dataset of the env works, e.g. a downloaded one: no walkers metadata,
+    no reference returns (so no normalized score), observations in float64."""
+    env = gym.make("Pendulum-v1")
+    rng = np.random.default_rng(1)
+    buffers = []
+    for i in range(3):
+        observations = [env.reset(seed=100 + i)[0]]
+        actions = rng.uniform(-2, 2, (200, 1)).astype(np.float32)
+        rewards = []
+        for action in actions:
+            obs, reward, *_ = env.step(action)
+            observations.append(obs)
+            rewards.append(reward)
+        buffers.append(
+            EpisodeBuffer(
+                id=i,
+                observations=np.asarray(observations, dtype=np.float64),
+                actions=actions,
+                rewards=np.asarray(rewards),
+                terminations=np.zeros(200, bool),
+                truncations=np.r_[np.zeros(199, bool), True],
+            )
+        )
+    minari.create_dataset_from_buffers("elsewhere/pendulum/random-v1", buffers, env=env)
+    train(
+        compose_cfg(
+            [
+                "algo=dt",
+                "env=pendulum",
+                "dataset=elsewhere/pendulum/random-v1",
+                "total_steps=20",
+                "eval_every=20",
+                "checkpoint_every=20",
+                "log_every=10",
+                "eval_episodes=1",
+                "progress=false",
+                *SMALL_DT,
+                *offline["overrides"],
+            ]
+        )
+    )
+    (run,) = [
+        r
+        for r in all_runs(offline["client"])
+        if r.data.tags.get("dataset") == "elsewhere/pendulum/random-v1"
+    ]
+    assert run.info.status == "FINISHED" and "eval/return_mean" in run.data.metrics
+    assert "eval/normalized_score" not in run.data.metrics  # no reference returns to use
+    best = max(b.rewards.sum() for b in buffers)  # target_returns: null -> the best episode
+    assert run.data.params["algo.target_returns"] == "None"
+    assert f"eval/target_{best:g}/return_mean" in run.data.metrics

@@ -87,8 +87,9 @@ SWEEPS = sorted(p.stem for p in (PROJECT_ROOT / "sweeps").glob("*.yaml"))
 
 @pytest.mark.parametrize("sweep", SWEEPS)
 def test_sweep_files_compose_with_a_pruner_and_a_search_space(sweep):
+    offline = ["dataset=walkers/some/dataset-v0"] if sweep.startswith("dt_") else []
     with initialize_config_dir(config_dir=CONF_DIR):
-        cfg = compose("train", overrides=[f"sweeps={sweep}"], return_hydra_config=True)
+        cfg = compose("train", overrides=[f"sweeps={sweep}", *offline], return_hydra_config=True)
     validate(cfg)
     assert cfg.hydra.sweeper._target_ == "walkers.sweeper.PruningOptunaSweeper"
     assert cfg.hydra.sweeper.study_name == sweep and cfg.hydra.sweeper.params

@@ -256,6 +256,9 @@ def test_report_puts_dt_beside_td3(offline, tmp_path):
     assert f"dt (offline, {EXPERT})" in report and f"{DT_STEPS:,} gradient steps" in report
     summary = json.loads((out / "summary.json").read_text())
     assert summary["algos"]["dt"]["dataset"] == EXPERT
+    normalized = _last(offline, _run(offline, "dt"), "final/normalized_score")
+    assert summary["algos"]["dt"]["normalized_score_mean"] == pytest.approx(normalized)
+    assert "dt: final normalized score" in report
     assert (out / "learning_curves.png").stat().st_size > 0
 
 

@@ -10,7 +10,7 @@ from hydra.core.utils import JobReturn, JobStatus
 from omegaconf import OmegaConf
 from optuna.trial import TrialState
 
-from tests.conftest import all_runs, run_cli
+from tests.conftest import all_runs, one_line_error, run_cli
 from walkers.sweeper import record_outcome
 
 #: A trial of the pendulum study at test size.
@@ -105,3 +105,18 @@ def test_diverged_trial_scores_the_worst_finite_value_and_errors_fail():
     crashed = study.ask()
     error = record_outcome(study, crashed, _job_return(error=RuntimeError("boom")))
     assert isinstance(error, RuntimeError) and study.trials[3].state == TrialState.FAIL
+
+
+def test_best_trial_becomes_a_preset(store):
+    study = sweep(store, "hydra.sweeper.n_trials=2")
+    storage = f"sqlite:///{store['path'] / 'optuna.db'}"
+    args = ["study=pendulum_tiny", f"storage={storage}", "name=tiny_tuned", f"dir={store['path']}"]
+    result = run_cli(args, cwd=store["path"], module="walkers.preset")
+    assert result.returncode == 0, result.stderr[-2000:]
+    preset = OmegaConf.load(store["path"] / "tiny_tuned.yaml")
+    assert preset.algo.lr == pytest.approx(study.best_trial.params["algo.lr"])
+    assert "override /algo: td3" in (store["path"] / "tiny_tuned.yaml").read_text()
+    again = run_cli(args, cwd=store["path"], module="walkers.preset")  # never overwritten silently
+    assert "force=true" in one_line_error(again)
+    missing = run_cli(["study=nope"], cwd=store["path"], module="walkers.preset")
+    assert "study='nope' is not a file in sweeps/" in one_line_error(missing)

@@ -59,6 +59,7 @@ class SeedRun:
     summary: dict[str, float]
     x_axis: str = ENV_STEPS
     dataset: str | None = None  # offline runs: what they learned from
+    normalized_score: float | None = None  # offline runs: 0 = random policy, 100 = the dataset's
 
 
 @dataclass
@@ -78,12 +79,19 @@ class AlgoResult:
     def dataset(self) -> str | None:
         return self.runs[0].dataset
 
+    @property
+    def normalized_score_mean(self) -> float | None:
+        """Mean final normalized score over the seeds that have one (offline runs)."""
+        scores = [r.normalized_score for r in self.runs if r.normalized_score is not None]
+        return float(np.mean(scores)) if scores else None
+
     def as_dict(self) -> dict:
         reached = np.isfinite(self.steps_to_threshold)
         return {
             "seeds": len(self.runs),
             "x_axis": self.x_axis,
             "dataset": self.dataset,
+            "normalized_score_mean": self.normalized_score_mean,
             "run_ids": [r.run_id for r in self.runs],
             "score_mean": float(self.scores.mean()),
             "score_std": float(self.scores.std()),
@@ -258,6 +266,7 @@ def load_seed_runs(client, runs: list, threshold: float) -> dict[str, list[SeedR
             summary=stats.run_summary(steps, values, threshold),
             x_axis=x_axis(run),
             dataset=run.data.tags.get("dataset"),
+            normalized_score=run.data.metrics.get("final/normalized_score"),
         )
         grouped.setdefault(seed_run.algo, []).append(seed_run)
     return grouped

@@ -1,6 +1,9 @@
-"""``python -m walkers.preset sweep=NAME``: a study's best trial as a ``conf/experiment`` preset.
+"""``python -m walkers.preset study=NAME``: a study's best trial as a ``conf/experiment`` preset.
 
-    python -m walkers.preset sweep=td3_walker2d
+(The key is ``study``, not ``sweep``: Hydra reads ``sweep=...`` as a choice in the ``sweep/``
+config group.)
+
+    python -m walkers.preset study=td3_walker2d
     python -m walkers.train experiment=td3_walker2d_tuned seed=3
 
 The preset selects the sweep's algorithm and env and pins the best trial's sampled values; the
@@ -67,17 +70,17 @@ def preset_yaml(name: str, sweep_cfg: DictConfig, trial, storage: str) -> str:
 
 def write_preset(cfg: DictConfig) -> Path:
     try:
-        sweep_cfg = compose("train", overrides=[f"sweeps={cfg.sweep}"], return_hydra_config=True)
+        sweep_cfg = compose("train", overrides=[f"sweeps={cfg.study}"], return_hydra_config=True)
     except Exception:
         names = sorted(p.stem for p in (PROJECT_ROOT / "sweeps").glob("*.yaml"))
         raise ConfigError(
-            f"sweep={cfg.sweep!r} is not a file in sweeps/: one of {', '.join(names)}"
+            f"study={cfg.study!r} is not a file in sweeps/: one of {', '.join(names)}"
         ) from None
     storage = absolute_storage(cfg.storage or sweep_cfg.hydra.sweeper.storage)
     study = sweep_cfg.hydra.sweeper.study_name
     trial = best_trial(storage, study)
-    name = cfg.name or f"{cfg.sweep}_tuned"
-    path = EXPERIMENT_DIR / f"{name}.yaml"
+    name = cfg.name or f"{cfg.study}_tuned"
+    path = Path(cfg.dir or EXPERIMENT_DIR) / f"{name}.yaml"
     if path.exists() and not cfg.force:
         raise ConfigError(f"{path} exists; pass force=true to overwrite it or name=<other name>")
     path.write_text(preset_yaml(name, sweep_cfg, trial, storage))

@@ -201,6 +201,13 @@ def markdown(c: Comparison, source: str) -> str:
             f"| {p.a} vs {p.b} | {QUANTITY_NAMES[p.quantity]} | {_interval(*p.p_improvement)} "
             f"| {p.p_value:.3g} |"
         )
+    for r in c.algos:
+        if r.normalized_score_mean is not None:
+            out += [
+                "",
+                f"{r.algo}: final normalized score {_num(r.normalized_score_mean)} (mean over "
+                f"seeds; 0 = a random policy, 100 = the behaviour policy of {r.dataset}).",
+            ]
     if len(c.grids) > 1:
         out += [
             "",

@@ -27,6 +27,12 @@ ab: $(STAMP)  ## a small A/B end to end in minutes: REINFORCE vs TD3 on Pendulum
 	$(PY) -m walkers.train -m experiment=ab_pendulum hydra/launcher=joblib $(ARGS)
 	$(PY) -m walkers.compare env=pendulum algos=[reinforce,td3] tracking.experiment=ab_pendulum
 
+offline: $(STAMP)  ## offline RL end to end in minutes: TD3 on Pendulum -> Minari dataset -> Decision Transformer -> report
+	$(PY) -m walkers.train experiment=offline_pendulum_td3 $(ARGS)
+	$(PY) -m walkers.collect run_id=latest env=pendulum tracking.experiment=offline_pendulum episodes=40 dataset=walkers/pendulum/td3-demo overwrite=true
+	$(PY) -m walkers.train experiment=offline_pendulum_dt
+	$(PY) -m walkers.compare env=pendulum algos=[td3,dt] tracking.experiment=offline_pendulum
+
 compare: $(STAMP)  ## A/B report from finished runs (ARGS="env=walker2d algos=[reinforce,td3] tracking.experiment=...")
 	$(PY) -m walkers.compare $(ARGS)
 
@@ -50,4 +56,4 @@ clean:  ## remove run outputs (mlflow.db, mlartifacts/, outputs/, multirun/, .wa
 	rm -rf mlflow.db mlruns mlartifacts outputs multirun .walkers reports .pytest_cache .ruff_cache
 	find . -name __pycache__ -type d -prune -not -path './$(VENV)/*' -exec rm -rf {} +
 
-.PHONY: help install train ab compare test bench bench-throughput lint ui clean
+.PHONY: help install train ab offline compare test bench bench-throughput lint ui clean

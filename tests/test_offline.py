@@ -97,7 +97,7 @@ def offline(pendulum_td3):
         mp.setenv("MINARI_DATASETS_PATH", str(minari_root))
         collected = run_cli(
             [
-                f"run_id={td3_run.info.run_id}",
+                "run_id=latest",  # the TD3 run: the only training run in the store yet
                 f"episodes={EPISODES}",
                 f"dataset={EXPERT.removesuffix('-v0')}",
                 *store["overrides"],
@@ -196,6 +196,7 @@ def test_dataset_stats_are_printed_logged_and_stored(offline):
     assert data.behaviour_return == pytest.approx(returns.mean())
     assert data.random_return < -900 < data.behaviour_return
     assert f"dataset {EXPERT}: {EPISODES} episodes" in offline["collect_stdout"]
+    assert run.data.params["run_id"] == str([offline["td3_run"].info.run_id])  # run_id=latest
     assert (offline["minari_root"] / EXPERT / "data").is_dir()
     artifacts = {a.path for a in client.list_artifacts(run.info.run_id)}
     assert {"stats.json", "returns.png"} <= artifacts

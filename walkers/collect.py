@@ -36,6 +36,7 @@ from walkers.evaluate import fetch_checkpoint
 log = logging.getLogger("walkers")
 
 RANDOM = "random"
+LATEST = "latest"
 #: Seeds of the random-policy episodes that measure the normalization floor.
 RANDOM_REFERENCE_SEED_OFFSET = 1_000_000
 
@@ -48,6 +49,7 @@ class Behaviour:
     agent: Agent | None
     env_cfg: DictConfig
     state: dict | None = None  # the checkpoint (replay=true reads its buffer)
+    run_id: str | None = None  # the MLflow run it comes from (random, a .pt file: None)
 
 
 def play(
@@ -106,6 +108,8 @@ def load_behaviours(cfg: DictConfig, client) -> list[Behaviour]:
 
     behaviours = []
     for run_id in _run_ids(cfg):
+        if run_id == LATEST:
+            run_id = latest_run(client, cfg)
         if run_id == RANDOM:
             if cfg.get("env") is None:
                 raise ConfigError("run_id=random needs env=<name> (e.g. env=pendulum)")
@@ -123,7 +127,7 @@ def load_behaviours(cfg: DictConfig, client) -> list[Behaviour]:
         finally:
             env.close()
         label = f"{run_cfg.algo.name} run {run_id} ({Path(path).name})" if run_id else str(path)
-        behaviours.append(Behaviour(label, agent, run_cfg.env, state))
+        behaviours.append(Behaviour(label, agent, run_cfg.env, state, run_id))
     env_ids = {b.env_cfg.id for b in behaviours}
     if cfg.get("env") is not None:
         env_ids.add(cfg.env.id)
@@ -133,6 +137,28 @@ def load_behaviours(cfg: DictConfig, client) -> list[Behaviour]:
             "a dataset holds one env's episodes"
         )
     return behaviours
+
+
+def latest_run(client, cfg: DictConfig) -> str:
+    """The newest FINISHED training run of ``tracking.experiment`` (on ``env`` if one is given)."""
+    experiment = client.get_experiment_by_name(cfg.tracking.experiment)
+    runs = [] if experiment is None else tracking.search_runs(client, experiment.experiment_id)
+    finished = [
+        r
+        for r in runs
+        if r.info.status == tracking.FINISHED
+        and tracking.KIND_TAG not in r.data.tags
+        and r.data.tags.get(tracking.X_AXIS_TAG) != tracking.GRADIENT_STEPS  # not offline runs
+        and (cfg.get("env") is None or r.data.tags.get("env") == cfg.env.id)
+    ]
+    if not finished:
+        raise ConfigError(
+            f"run_id=latest: no finished training run in experiment "
+            f"{cfg.tracking.experiment!r} of {cfg.tracking.uri}"
+        )
+    newest = max(finished, key=lambda r: r.info.start_time)
+    log.info("run_id=latest: run %s (%s)", newest.info.run_id, newest.info.run_name)
+    return newest.info.run_id
 
 
 def _check(cfg: DictConfig) -> None:
@@ -210,7 +236,8 @@ def collect(cfg: DictConfig) -> dict:
     stats = dataset_stats(data, per_source)
     stats["path"] = str(datasets.root() / data.id)
     if cfg.log_to_mlflow:
-        stats["mlflow_url"] = _log_dataset_run(client, cfg, data, stats)
+        sources = [b.run_id or b.label for b in behaviours]
+        stats["mlflow_url"] = _log_dataset_run(client, cfg, data, stats, sources)
     return stats
 
 
@@ -232,7 +259,7 @@ def dataset_stats(data, per_source: dict[str, list[float]]) -> dict:
     }
 
 
-def _log_dataset_run(client, cfg: DictConfig, data, stats: dict) -> str:
+def _log_dataset_run(client, cfg: DictConfig, data, stats: dict, sources: list[str]) -> str:
     """The dataset's stats as an MLflow run of its own, with its return histogram."""
     import matplotlib
 
@@ -249,7 +276,7 @@ def _log_dataset_run(client, cfg: DictConfig, data, stats: dict) -> str:
         tracker.log_params(
             {
                 "dataset": data.id,
-                "run_id": _run_ids(cfg),
+                "run_id": sources,
                 "checkpoint": "last" if cfg.replay else cfg.checkpoint,
                 "replay": cfg.replay,
                 "episodes_per_policy": cfg.episodes,

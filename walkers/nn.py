@@ -62,6 +62,39 @@ class EnsembleLinear(nn.Module):
         return torch.baddbmm(bias, x, weight)
 
 
+class EnsembleActor(nn.Module):
+    """``n`` independent deterministic policies (a seed population), one batched matmul a layer.
+
+    Input ``(n, batch, obs)`` (or ``(batch, obs)`` shared); output ``(n, batch, act)``; ``members``
+    selects a subset. Member ``i`` computes exactly what an :class:`Actor` with its weights does.
+    """
+
+    def __init__(self, n, obs_dim, act_dim, hidden_sizes, action_low, action_high):
+        super().__init__()
+        dims = [obs_dim, *hidden_sizes, act_dim]
+        self.layers = nn.ModuleList(
+            EnsembleLinear(n, a, b) for a, b in zip(dims[:-1], dims[1:], strict=True)
+        )
+        low = torch.as_tensor(action_low, dtype=torch.float32)
+        high = torch.as_tensor(action_high, dtype=torch.float32)
+        self.register_buffer("action_scale", (high - low) / 2)
+        self.register_buffer("action_bias", (high + low) / 2)
+
+    def forward(self, obs: torch.Tensor, members: slice = slice(None)) -> torch.Tensor:
+        x = obs
+        for layer in self.layers[:-1]:
+            x = F.relu(layer(x, members))
+        return torch.tanh(self.layers[-1](x, members)) * self.action_scale + self.action_bias
+
+    def member_state(self, i: int) -> dict[str, torch.Tensor]:
+        """Member ``i``'s weights as an :class:`Actor` state dict (nn.Linear layout)."""
+        state = {"action_scale": self.action_scale, "action_bias": self.action_bias}
+        for k, layer in enumerate(self.layers):
+            state[f"net.{2 * k}.weight"] = layer.weight[i].T.contiguous()
+            state[f"net.{2 * k}.bias"] = layer.bias[i, 0].clone()
+        return state
+
+
 class EnsembleLayerNorm(nn.Module):
     """LayerNorm over the feature dimension with a separate affine transform per member."""
 

@@ -19,6 +19,7 @@ import sys
 from pathlib import Path
 
 import hydra
+import numpy as np
 import torch
 from hydra.core.hydra_config import HydraConfig
 from hydra.errors import InstantiationException
@@ -29,6 +30,7 @@ from walkers.agents.base import Agent, resolve_device
 from walkers.cli import exit_on_bad_overrides
 from walkers.envs import env_spaces, make_env
 from walkers.errors import CheckpointError, ConfigError
+from walkers.population import MEMBER_TAG, POPULATION_TAG, MemberAgent, PopulationTrainer
 from walkers.trainer import OfflineTrainer, Trainer, TrainerSettings, TrainingDiverged
 from walkers.trial import PRUNED_TAG, TrialReporter
 from walkers.validate import is_offline, validate
@@ -133,6 +135,8 @@ def train(cfg: DictConfig, overrides: list[str] | tuple = ()) -> float:
         validate(cfg)
     if cfg.torch_threads:
         torch.set_num_threads(cfg.torch_threads)
+    if cfg.population > 1:
+        return _train_population(cfg, client)
     data = load_dataset(cfg) if is_offline(cfg) else None
     env = None if data is not None else make_env(cfg.env)  # offline agents never step an env
     eval_env = make_env(cfg.env, shaping=False)
@@ -179,7 +183,62 @@ def load_dataset(cfg: DictConfig):
     return data
 
 
-def _open_run(client, cfg: DictConfig, data=None) -> tracking.Tracker:
+def _train_population(cfg: DictConfig, client) -> float:
+    """``population=K``: K members in one agent and one loop, one MLflow run per member."""
+    k = cfg.population
+    members = [_member_config(cfg, i) for i in range(k)]
+    envs = [make_env(cfg.env) for _ in members]
+    eval_envs = [make_env(cfg.env, shaping=False) for _ in members]
+    trackers: list[tracking.Tracker] = []
+    status = tracking.FAILED
+    try:
+        agent = build_agent(cfg, env_spaces(eval_envs[0]), population=k)
+        try:
+            for i, member in enumerate(members):
+                tags = {POPULATION_TAG: str(k), MEMBER_TAG: str(i)}
+                trackers.append(_open_run(client, member, extra_tags=tags))
+            trainers = [
+                Trainer(
+                    MemberAgent(agent, i),
+                    envs[i],
+                    eval_envs[i],
+                    tracker,
+                    trainer_settings(member),
+                    checkpoint_dir=_run_dir(member, tracker) / "checkpoints",
+                    checkpoint_extra={"config": OmegaConf.to_container(member, resolve=True)},
+                )
+                for i, (member, tracker) in enumerate(zip(members, trackers, strict=True))
+            ]
+            summaries = PopulationTrainer(agent, trainers).run()
+            status = tracking.FINISHED
+        except KeyboardInterrupt:
+            status = tracking.KILLED
+            raise
+        finally:
+            for tracker in trackers:
+                tracker.end(status)
+                log.info("MLflow run %s ended %s: %s", tracker.run_id, status, tracker.url)
+    finally:
+        for e in envs + eval_envs:
+            e.close()
+    values = [s.get(cfg.optimized_metric, math.nan) for s in summaries]
+    log.info("%s per member = %s", cfg.optimized_metric, values)
+    return float(np.mean(values))
+
+
+def _member_config(cfg: DictConfig, i: int) -> DictConfig:
+    """Member ``i``'s config: seed ``seed + i``, and ``population=1`` (what resuming it means)."""
+    member = cfg.copy()
+    member.seed = cfg.seed + i
+    member.population = 1
+    if cfg.tracking.run_name:
+        member.tracking.run_name = f"{cfg.tracking.run_name}-m{i}"
+    return member
+
+
+def _open_run(
+    client, cfg: DictConfig, data=None, extra_tags: dict | None = None
+) -> tracking.Tracker:
     """Reopen the resumed run, or create a new one with the config as params and tags."""
     spool = Path(cfg.work_dir) / "spool"
     if cfg.resume:
@@ -195,6 +254,7 @@ def _open_run(client, cfg: DictConfig, data=None) -> tracking.Tracker:
     }
     if data is not None:
         tags["dataset"] = data.id
+    tags |= extra_tags or {}
     run_name = cfg.tracking.run_name or f"{algo}-{env_id}-s{cfg.seed}"
     if cfg.sweep.trial_number is not None:  # a trial of an Optuna study
         tags |= {"walkers.study": cfg.sweep.study, "walkers.trial": str(cfg.sweep.trial_number)}
@@ -214,6 +274,32 @@ def _open_run(client, cfg: DictConfig, data=None) -> tracking.Tracker:
     return tracker
 
 
+def _run_dir(cfg: DictConfig, tracker: tracking.Tracker) -> Path:
+    """The run's local folder, with its ``config.yaml`` written and logged."""
+    run_dir = Path(cfg.work_dir) / "runs" / tracker.run_id
+    config_yaml = run_dir / "config.yaml"
+    config_yaml.parent.mkdir(parents=True, exist_ok=True)
+    config_yaml.write_text(OmegaConf.to_yaml(cfg, resolve=True))
+    tracker.log_artifact(config_yaml)
+    return run_dir
+
+
+def trainer_settings(cfg: DictConfig) -> TrainerSettings:
+    return TrainerSettings(
+        total_steps=cfg.total_steps,
+        eval_every=cfg.eval_every,
+        eval_episodes=cfg.eval_episodes,
+        checkpoint_every=cfg.checkpoint_every,
+        log_every=cfg.log_every,
+        seed=cfg.seed,
+        threshold=cfg.env.threshold,
+        save_buffer=cfg.save_buffer,
+        progress=cfg.progress,
+        video_every=cfg.video_every,
+        divergence_patience=cfg.divergence_patience,
+    )
+
+
 def _dataset_params(data) -> dict[str, str]:
     returns = data.returns
     return {
@@ -230,24 +316,8 @@ def _train_in_run(
     cfg, tracker, agent, env, eval_env, video_env, resume_state, data=None
 ) -> dict[str, float]:
     reporter = TrialReporter(cfg.sweep) if cfg.sweep.trial_id is not None else None
-    run_dir = Path(cfg.work_dir) / "runs" / tracker.run_id
-    config_yaml = run_dir / "config.yaml"
-    config_yaml.parent.mkdir(parents=True, exist_ok=True)
-    config_yaml.write_text(OmegaConf.to_yaml(cfg, resolve=True))
-    tracker.log_artifact(config_yaml)
-    settings = TrainerSettings(
-        total_steps=cfg.total_steps,
-        eval_every=cfg.eval_every,
-        eval_episodes=cfg.eval_episodes,
-        checkpoint_every=cfg.checkpoint_every,
-        log_every=cfg.log_every,
-        seed=cfg.seed,
-        threshold=cfg.env.threshold,
-        save_buffer=cfg.save_buffer,
-        progress=cfg.progress,
-        video_every=cfg.video_every,
-        divergence_patience=cfg.divergence_patience,
-    )
+    run_dir = _run_dir(cfg, tracker)
+    settings = trainer_settings(cfg)
     offline = {"normalize": data.normalized} if data is not None else {}
     trainer = (OfflineTrainer if data is not None else Trainer)(
         agent,

@@ -66,6 +66,7 @@ RULES: list[tuple[str, callable, str]] = [
     ("log_every", positive_int, "an integer > 0"),
     ("video_every", non_negative_int, "an integer >= 0 (0: no videos)"),
     ("divergence_patience", positive_int, "an integer > 0"),
+    ("population", positive_int, "an integer > 0"),
     ("torch_threads", lambda v: v is None or positive_int(v), "null or an integer > 0"),
     ("device", lambda v: v in DEVICES, "one of " + ", ".join(DEVICES)),
     (
@@ -121,6 +122,25 @@ def is_offline(cfg: DictConfig) -> bool:
     return bool(getattr(get_class(cfg.algo._target_), "offline", False))
 
 
+def _check_population(cfg: DictConfig) -> None:
+    from hydra.utils import get_class
+
+    k = cfg.get("population", 1)
+    if k == 1:
+        return
+    if not hasattr(get_class(cfg.algo._target_), "act_population"):
+        raise ConfigError(
+            f"population={k} is not allowed with algo={cfg.algo.name}: "
+            "only td3 and ddpg train seed populations"
+        )
+    for key, unsupported in (("video_every", cfg.video_every), ("sweep", cfg.sweep.trial_id)):
+        if unsupported:
+            raise ConfigError(
+                f"population={k} is not allowed with {key}: run the population without it "
+                "(videos: walkers.evaluate on a member's run)"
+            )
+
+
 def _check_dataset(cfg: DictConfig) -> None:
     dataset = cfg.get("dataset")
     if is_offline(cfg) and not dataset:
@@ -156,6 +176,7 @@ def validate(cfg: DictConfig) -> None:
         f"at most total_steps ({cfg.total_steps})",
     )
     _check_dataset(cfg)
+    _check_population(cfg)
     algo = cfg.algo
     if "batch_size" in algo and "buffer_size" in algo:
         check(

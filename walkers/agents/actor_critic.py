@@ -5,6 +5,15 @@ TD3 (Fujimoto et al. 2018) is this core with ``num_critics=2`` (clipped double-Q
 updates). DDPG as the TD3 paper's "our DDPG" is the same core with one critic, no smoothing and
 no delay. The update in :meth:`ActorCritic.update` follows Algorithm 1 of the TD3 paper line by
 line.
+
+``population=K`` trains K independent seeds (``seed, seed + 1, ...``) in one agent: actors and
+critics are ensembles with a leading member dimension (one batched matmul per layer for all),
+each member has its own replay buffer, exploration noise and RNG, and the losses are sums of
+per-member losses, so each member's gradient is its own. Adam is elementwise, so one optimizer
+keeps members independent; a member whose loss is NaN/inf has its gradients zeroed for that
+update (the others step normally). :meth:`ActorCritic.member_state_dict` cuts one member out as
+an ordinary single-agent checkpoint. With ``population=1`` (the default) tensors carry no member
+dimension and nothing changes.
 """
 
 from __future__ import annotations
@@ -14,12 +23,11 @@ from collections.abc import Sequence
 
 import numpy as np
 import torch
-from torch.nn import functional as F
 
 from walkers.agents.base import Agent, Transition, resolve_device
 from walkers.agents.health import NonFiniteGuard
-from walkers.buffers import ReplayBuffer
-from walkers.nn import Actor, make_critic, soft_update
+from walkers.buffers import Batch, ReplayBuffer
+from walkers.nn import Actor, EnsembleActor, make_critic, soft_update
 
 
 class GaussianNoise:
@@ -96,6 +104,7 @@ class ActorCritic(Agent):
         critic_architecture: str = "mlp",
         critic_hidden_sizes: Sequence[int] | None = None,
         noise_type: str = "gaussian",
+        population: int = 1,
         device: str = "cpu",
         seed: int = 0,
     ):
@@ -113,16 +122,26 @@ class ActorCritic(Agent):
         self.action_low = np.asarray(action_low, dtype=np.float32)
         self.action_high = np.asarray(action_high, dtype=np.float32)
         act_dim = len(self.action_low)
-        self.rng = np.random.default_rng(seed)
+        self.population, self.num_critics = int(population), num_critics
+        seeds = [seed + i for i in range(self.population)]
+        self.rngs = [np.random.default_rng(s) for s in seeds]  # one per member
+        self.rng = self.rngs[0]
         half_range = (self.action_high - self.action_low) / 2
-        self.noise = NOISE_TYPES[noise_type](exploration_noise, act_dim, self.rng)
+        self.noises = [NOISE_TYPES[noise_type](exploration_noise, act_dim, r) for r in self.rngs]
+        self.noise = self.noises[0]
         self.noise_scale = half_range  # noise std is given as a fraction of the half-range
 
         torch.manual_seed(seed)
-        self.actor = Actor(obs_dim, act_dim, hidden_sizes, action_low, action_high).to(self.device)
+        if self.population == 1:
+            actor = Actor(obs_dim, act_dim, hidden_sizes, action_low, action_high)
+        else:
+            actor = EnsembleActor(
+                self.population, obs_dim, act_dim, hidden_sizes, action_low, action_high
+            )
+        self.actor = actor.to(self.device)
         critic_hidden = hidden_sizes if critic_hidden_sizes is None else critic_hidden_sizes
         self.critic = make_critic(
-            critic_architecture, obs_dim, act_dim, critic_hidden, num_critics
+            critic_architecture, obs_dim, act_dim, critic_hidden, num_critics * self.population
         ).to(self.device)
         self.actor_target = copy.deepcopy(self.actor).requires_grad_(False)
         self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
@@ -135,10 +154,12 @@ class ActorCritic(Agent):
         self.low_t = torch.as_tensor(self.action_low, device=self.device)
         self.high_t = torch.as_tensor(self.action_high, device=self.device)
 
-        self.buffer = ReplayBuffer(buffer_size, obs_dim, act_dim, self.device, seed=seed)
-        self.steps = 0  # transitions observed
+        self.buffers = [ReplayBuffer(buffer_size, obs_dim, act_dim, self.device, s) for s in seeds]
+        self.buffer = self.buffers[0]
+        self.steps = 0  # transitions observed (per member)
         self.num_updates = 0  # critic updates done
-        self.guard = NonFiniteGuard(self.device)
+        shape = () if self.population == 1 else (self.population,)
+        self.guard = NonFiniteGuard(self.device, shape)
 
     # --- acting -------------------------------------------------------------------------------
     def act(self, obs: np.ndarray, explore: bool) -> np.ndarray:
@@ -158,12 +179,70 @@ class ActorCritic(Agent):
         if t.episode_over:
             self.noise.reset()
 
+    # --- a population: one observation and one transition per member, in member order -------
+    def act_population(self, obs: np.ndarray, explore: bool) -> np.ndarray:
+        """``(K, act_dim)`` actions for ``(K, obs_dim)`` observations."""
+        if explore and self.steps < self.learning_starts:
+            uniform = [r.uniform(self.action_low, self.action_high) for r in self.rngs]
+            return np.stack(uniform).astype(np.float32)
+        with torch.no_grad():
+            obs_t = torch.as_tensor(obs, dtype=torch.float32, device=self.device)
+            actions = self.actor(obs_t.unsqueeze(1))[:, 0].cpu().numpy()
+        if explore:
+            noise = np.stack([n.sample() for n in self.noises]) * self.noise_scale
+            actions = np.clip(actions + noise, self.action_low, self.action_high)
+        return actions.astype(np.float32)
+
+    def observe_population(self, transitions: list[Transition]) -> None:
+        for buffer, noise, t in zip(self.buffers, self.noises, transitions, strict=True):
+            buffer.add(t.obs, t.action, t.reward, t.next_obs, t.terminated, t.episode_over)
+            if t.episode_over:
+                noise.reset()
+        self.steps += 1
+
+    def member_policy(self, i: int) -> MemberPolicy:
+        """Member ``i`` as an agent that acts (for evaluation rollouts)."""
+        return MemberPolicy(self, i)
+
     # --- learning -----------------------------------------------------------------------------
+    def _sample(self) -> Batch:
+        """A batch: ``(batch, ...)`` tensors, or ``(K, batch, ...)`` (one per member) for K > 1."""
+        if self.population == 1:
+            return self.buffer.sample(self.batch_size)
+        batches = [buffer.sample(self.batch_size) for buffer in self.buffers]
+        return Batch(*(torch.stack(field) for field in zip(*batches, strict=True)))
+
+    def _per_critic(self, x: torch.Tensor) -> torch.Tensor:
+        """Each member's inputs for each of its critics: ``(K, B, d)`` -> ``(K * C, B, d)``."""
+        return x if x.dim() == 2 else x.repeat_interleave(self.num_critics, dim=0)
+
+    def _per_member(self, x: torch.Tensor) -> torch.Tensor:
+        """A ``(K,)`` diagnostic; a scalar for a single agent."""
+        return x.detach()[0] if self.population == 1 else x.detach()
+
+    def _skip_bad_members(self, optimizer, bad: torch.Tensor, copies: int) -> None:
+        """Make the next ``optimizer.step()`` skip members whose ``bad`` is 1, without a sync.
+
+        A single agent: fused Adam skips its whole step (``found_inf``). A population: the bad
+        members' gradients are zeroed (NaN included) and the step is skipped only if all are bad.
+        ``copies``: parameter members per agent member (the critics per member).
+        """
+        if self.population == 1:
+            optimizer.found_inf = bad[0]
+            return
+        optimizer.found_inf = bad.min()
+        skip = (bad > 0).repeat_interleave(copies).view(-1, 1, 1)
+        for group in optimizer.param_groups:
+            for param in group["params"]:
+                if param.grad is not None:
+                    param.grad.masked_fill_(skip, 0.0)
+
     def update(self) -> dict[str, torch.Tensor]:
         if self.steps < self.learning_starts or len(self.buffer) < self.batch_size:
             return {}
         self.num_updates += 1
-        b = self.buffer.sample(self.batch_size)
+        b = self._sample()
+        K, C = self.population, self.num_critics
 
         # Critic: regress every Q_i onto y = r + gamma * (1 - terminated) * min_j Q'_j(s', a~),
         # a~ = clip(pi'(s') + clip(eps, -c, c), low, high), eps ~ N(0, sigma)   (smoothing)
@@ -173,29 +252,37 @@ class ActorCritic(Agent):
                 eps = torch.randn_like(next_action) * self.policy_noise
                 eps = eps.clamp(-self.noise_clip, self.noise_clip) * self.actor.action_scale
                 next_action = (next_action + eps).clamp(self.low_t, self.high_t)
-            next_q = self.critic_target(b.next_obs, next_action).min(dim=0).values
+            next_q = self.critic_target(self._per_critic(b.next_obs), self._per_critic(next_action))
+            next_q = next_q.unflatten(0, (K, C)).min(dim=1).values  # (K, batch)
             target = b.reward + self.gamma * (1.0 - b.terminated) * next_q
-        q = self.critic(b.obs, b.action)  # (num_critics, batch)
-        critic_loss = F.mse_loss(q, target.expand_as(q), reduction="none").mean(dim=1).sum()
+        q = self.critic(self._per_critic(b.obs), self._per_critic(b.action)).unflatten(0, (K, C))
+        member_critic_loss = (q - target.unsqueeze(1)).pow(2).mean(dim=2).sum(dim=1)  # (K,)
         self.critic_optimizer.zero_grad(set_to_none=True)
-        critic_loss.backward()
-        # NaN/inf guard without a host sync: fused Adam skips its step when found_inf is 1.
-        bad = self.guard.is_bad(critic_loss)
-        self.critic_optimizer.found_inf = bad
+        member_critic_loss.sum().backward()
+        # NaN/inf guard without a host sync (see _skip_bad_members).
+        bad = NonFiniteGuard.bad_members(member_critic_loss)
+        self._skip_bad_members(self.critic_optimizer, bad, copies=C)
         self.critic_optimizer.step()
-        self.guard.record(bad)
-        metrics = {"loss/critic": critic_loss.detach(), "train/q_mean": q.detach().mean()}
+        self.guard.record(self._per_member(bad))
+        metrics = {
+            "loss/critic": self._per_member(member_critic_loss),
+            "train/q_mean": self._per_member(q.mean(dim=(1, 2))),
+        }
 
         # Delayed policy update: maximize Q_1(s, pi(s)), then move the targets.
         if self.num_updates % self.policy_delay == 0:
-            actor_loss = -self.critic(b.obs, self.actor(b.obs), members=slice(0, 1)).mean()
+            first_critics = slice(0, None, C)  # Q_1 of every member
+            q_pi = self.critic(b.obs, self.actor(b.obs), members=first_critics)
+            member_actor_loss = -q_pi.mean(dim=-1)  # (K,)
             self.actor_optimizer.zero_grad(set_to_none=True)
-            actor_loss.backward(inputs=list(self.actor.parameters()))  # no critic weight grads
-            self.actor_optimizer.found_inf = self.guard.is_bad(critic_loss, actor_loss)
+            actor_params = list(self.actor.parameters())
+            member_actor_loss.sum().backward(inputs=actor_params)  # no critic weight grads
+            bad = NonFiniteGuard.bad_members(member_critic_loss, member_actor_loss)
+            self._skip_bad_members(self.actor_optimizer, bad, copies=1)
             self.actor_optimizer.step()
             soft_update(self.critic_target, self.critic, self.tau)
             soft_update(self.actor_target, self.actor, self.tau)
-            metrics["loss/actor"] = actor_loss.detach()
+            metrics["loss/actor"] = self._per_member(member_actor_loss)
         return metrics | self.guard.metrics()
 
     # --- checkpoints --------------------------------------------------------------------------
@@ -226,3 +313,72 @@ class ActorCritic(Agent):
         self.buffer.load_state_dict(state["buffer"])
         if "guard" in state:
             self.guard.load_state_dict(state["guard"])
+
+    def member_state_dict(self, i: int, with_buffer: bool = False) -> dict:
+        """Member ``i`` of a population as a single agent's :meth:`state_dict`.
+
+        Networks, targets, Adam moments, counters, RNG, noise, buffer and guard of that member
+        only, in the single-agent layout: a member's checkpoint loads into an ordinary agent
+        (``walkers.evaluate``, ``walkers.collect``, or ``resume=`` to continue it alone).
+        """
+        C = self.num_critics
+        critics = slice(i * C, (i + 1) * C)
+
+        def critic_state(module) -> dict:
+            return {k: v[critics].clone() for k, v in module.state_dict().items()}
+
+        def optimizer_state(optimizer, cut) -> dict:
+            state = optimizer.state_dict()
+            params = state["param_groups"][0]["params"]
+            members = [p for group in optimizer.param_groups for p in group["params"]]
+            for index, param in zip(params, members, strict=True):
+                if index in state["state"]:  # a new dict: state_dict() shares the live one
+                    moments = state["state"][index]
+                    state["state"][index] = moments | {
+                        key: cut(moments[key], param) for key in ("exp_avg", "exp_avg_sq")
+                    }
+            return state
+
+        def actor_cut(x, param):  # EnsembleLinear weight (K, in, out) -> Linear (out, in)
+            return x[i].T.contiguous() if x.dim() == 3 and x.shape[1] != 1 else x[i, 0].clone()
+
+        def critic_cut(x, param):
+            return x[critics].clone()
+
+        return {
+            "actor": self.actor.member_state(i),
+            "critic": critic_state(self.critic),
+            "actor_target": self.actor_target.member_state(i),
+            "critic_target": critic_state(self.critic_target),
+            "actor_optimizer": optimizer_state(self.actor_optimizer, actor_cut),
+            "critic_optimizer": optimizer_state(self.critic_optimizer, critic_cut),
+            "steps": self.steps,
+            "num_updates": self.num_updates,
+            "rng": self.rngs[i].bit_generator.state,
+            "noise": self.noises[i].state_dict(),
+            "buffer": self.buffers[i].state_dict(with_data=with_buffer),
+            "guard": {
+                "skipped": self.guard.skipped[i].item(),
+                "in_a_row": self.guard.in_a_row[i].item(),
+            },
+        }
+
+
+class MemberPolicy:
+    """One member of a population, acting greedily (what evaluation rollouts need)."""
+
+    def __init__(self, population: ActorCritic, index: int):
+        self.population, self.members = population, slice(index, index + 1)
+
+    def act(self, obs: np.ndarray, explore: bool = False) -> np.ndarray:
+        agent = self.population
+        with torch.no_grad():
+            obs_t = torch.as_tensor(obs, dtype=torch.float32, device=agent.device)
+            action = agent.actor(obs_t.view(1, 1, -1), members=self.members)[0, 0]
+        return action.cpu().numpy().astype(np.float32)
+
+    def begin_episode(self) -> None:
+        pass
+
+    def record_reward(self, reward: float) -> None:
+        pass

@@ -15,9 +15,11 @@ SKIPPED_IN_A_ROW = "health/skipped_in_a_row"
 
 
 class NonFiniteGuard:
-    def __init__(self, device: torch.device):
-        self.skipped = torch.zeros((), device=device)
-        self.in_a_row = torch.zeros((), device=device)
+    """Counters of shape ``shape``: ``()`` for one agent, ``(K,)`` for a population of K."""
+
+    def __init__(self, device: torch.device, shape: tuple[int, ...] = ()):
+        self.skipped = torch.zeros(shape, device=device)
+        self.in_a_row = torch.zeros(shape, device=device)
 
     @staticmethod
     def is_bad(*values: torch.Tensor) -> torch.Tensor:
@@ -25,6 +27,14 @@ class NonFiniteGuard:
         finite = torch.isfinite(values[0]).all()
         for value in values[1:]:
             finite &= torch.isfinite(value).all()
+        return (~finite).to(torch.float32)
+
+    @staticmethod
+    def bad_members(*values: torch.Tensor) -> torch.Tensor:
+        """Per member (the first dimension of each value): 1.0 where any is NaN/inf."""
+        finite = torch.isfinite(values[0])
+        for value in values[1:]:
+            finite &= torch.isfinite(value)
         return (~finite).to(torch.float32)
 
     def record(self, bad: torch.Tensor) -> None:
@@ -36,8 +46,8 @@ class NonFiniteGuard:
         return {SKIPPED: self.skipped, SKIPPED_IN_A_ROW: self.in_a_row}
 
     def state_dict(self) -> dict:
-        return {"skipped": self.skipped.item(), "in_a_row": self.in_a_row.item()}
+        return {"skipped": self.skipped.tolist(), "in_a_row": self.in_a_row.tolist()}
 
     def load_state_dict(self, state: dict) -> None:
-        self.skipped.fill_(state["skipped"])
-        self.in_a_row.fill_(state["in_a_row"])
+        self.skipped.copy_(torch.as_tensor(state["skipped"]))
+        self.in_a_row.copy_(torch.as_tensor(state["in_a_row"]))

@@ -1,0 +1,119 @@
+"""population=K: seeds trained together as stacked networks, each member its own MLflow run."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from tests.conftest import TINY, all_runs, compose_cfg
+from walkers import checkpoints
+from walkers.agents.base import Transition
+from walkers.agents.td3 import TD3
+from walkers.envs import make_env
+from walkers.errors import ConfigError
+from walkers.train import agent_from_checkpoint, train
+from walkers.validate import validate
+
+SMALL = dict(batch_size=16, learning_starts=20, hidden_sizes=[16, 16], buffer_size=1000)
+
+
+def feed(agent: TD3, rewards: np.ndarray, steps: int = 60) -> None:
+    """``steps`` identical-shaped transitions per member; member i gets reward ``rewards[i]``."""
+    rng = np.random.default_rng(0)
+    obs = rng.normal(size=(agent.population, 3))
+    for t in range(steps):
+        actions = agent.act_population(obs, explore=True)
+        nxt = rng.normal(size=obs.shape)
+        agent.observe_population(
+            [
+                Transition(obs[i], actions[i], float(rewards[i]), nxt[i], False, t % 20 == 19)
+                for i in range(agent.population)
+            ]
+        )
+        agent.update()
+        obs = nxt
+
+
+def trained(rewards: list[float]) -> TD3:
+    agent = TD3(3, [-2.0], [2.0], population=2, seed=0, **SMALL)  # also seeds torch's RNG
+    feed(agent, np.array(rewards))
+    return agent
+
+
+def test_members_learn_independently_and_a_nan_stays_in_its_member():
+    clean = trained([1.0, -1.0])
+    poisoned = trained([1.0, np.nan])  # member 1 sees only NaN rewards
+    for name in ("actor", "critic"):
+        a, b = getattr(clean, name), getattr(poisoned, name)
+        for (key, x), y in zip(a.state_dict().items(), b.state_dict().values(), strict=True):
+            if x.dim() == 0 or key.startswith("action_"):
+                continue
+            first = slice(0, 1) if name == "actor" else slice(0, 2)  # member 0's networks
+            assert torch.equal(x[first], y[first]), key  # member 0 never felt member 1's data
+            assert torch.isfinite(y).all(), key  # and no NaN entered any weights
+    assert poisoned.guard.skipped[0].item() == 0 and poisoned.guard.skipped[1].item() > 0
+
+
+def test_a_member_cut_out_is_an_ordinary_agent():
+    population = TD3(3, [-2.0], [2.0], population=3, seed=0, **SMALL)
+    feed(population, np.array([0.5, 1.0, -1.0]))
+    single = TD3(3, [-2.0], [2.0], seed=2, **SMALL)
+    single.load_state_dict(population.member_state_dict(2, with_buffer=True))
+    obs = np.array([0.1, -0.3, 0.7])
+    np.testing.assert_allclose(
+        single.act(obs, explore=False), population.member_policy(2).act(obs), atol=1e-5
+    )
+    assert len(single.buffer) == 60 and single.update()  # it keeps learning on its own
+
+
+def test_population_run_logs_each_member_as_its_own_run(store):
+    train(
+        compose_cfg(
+            [
+                "algo=td3",
+                "env=pendulum",
+                "population=2",
+                "seed=5",
+                *TINY,
+                "algo.learning_starts=100",
+                "algo.hidden_sizes=[32,32]",
+                *store["overrides"],
+            ]
+        )
+    )
+    runs = sorted(all_runs(store["client"]), key=lambda r: r.data.params["seed"])
+    assert [r.data.params["seed"] for r in runs] == ["5", "6"]
+    assert [r.data.tags["walkers.population_member"] for r in runs] == ["0", "1"]
+    client = store["client"]
+    env = make_env({"id": "Pendulum-v1", "max_episode_steps": 200}, shaping=False)
+    for run in runs:
+        assert run.info.status == "FINISHED" and run.data.tags["walkers.population"] == "2"
+        steps = [m.step for m in client.get_metric_history(run.info.run_id, "eval/return_mean")]
+        assert steps == [300, 600]
+        assert {"final/return_mean", "perf/sps", "perf/population_sps", "loss/critic"} <= set(
+            run.data.metrics
+        )
+        path = client.download_artifacts(
+            run.info.run_id, "checkpoints/last.pt", str(store["path"] / run.info.run_id)
+        )
+        run_cfg, agent = agent_from_checkpoint(checkpoints.load(path), env, "cpu")
+        assert run_cfg.seed == int(run.data.params["seed"]) and run_cfg.population == 1
+        assert agent.act(env.reset(seed=0)[0], explore=False).shape == (1,)
+    env.close()
+    returns = [[m.value for m in client.get_metric_history(r.info.run_id, "train/episode_return")]
+               for r in runs]
+    assert returns[0] != returns[1]  # different seeds, different experience
+
+
+@pytest.mark.parametrize(
+    "overrides,expected",
+    [
+        (["algo=reinforce", "population=2"], "population=2 is not allowed with algo=reinforce"),
+        (["population=2", "video_every=1000"], "population=2 is not allowed with video_every"),
+        (["population=0"], "population=0 is not allowed: must be an integer > 0"),
+    ],
+)
+def test_bad_population(overrides, expected):
+    with pytest.raises(ConfigError, match=expected):
+        validate(compose_cfg(overrides))

@@ -1,0 +1,120 @@
+"""``population=K``: K seeds of TD3/DDPG trained in one process, each logged as its own run.
+
+    python -m walkers.train algo=td3 env=walker2d population=5 seed=0   # seeds 0..4, 5 runs
+
+The agent holds all members as ensembles (:class:`walkers.agents.actor_critic.ActorCritic` with
+``population=K``) and updates them in one batched step; each member has its own env, eval env,
+MLflow run, evaluations and checkpoints. A member's run looks exactly like a single run with its
+seed (params, tags, metrics, ``best.pt``/``last.pt`` in the single-agent layout), plus the tags
+``walkers.population`` (K) and ``walkers.population_member`` (its index): `walkers.evaluate`,
+`walkers.collect` and `walkers.compare` treat it as any run, and ``resume=<member run>``
+continues that member alone. The members share the loop, so they stop together: Ctrl-C ends
+every run KILLED, a member whose updates keep failing (``divergence_patience``) ends every run
+FAILED.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from walkers.agents.actor_critic import ActorCritic
+from walkers.agents.base import Agent, Transition
+from walkers.trainer import Trainer
+
+POPULATION_TAG = "walkers.population"
+MEMBER_TAG = "walkers.population_member"
+
+
+class MemberAgent(Agent):
+    """Member ``index`` of a population, seen by its :class:`Trainer` as an agent of its own:
+    it acts (evaluations) and checkpoints; the population loop does the learning."""
+
+    def __init__(self, population: ActorCritic, index: int):
+        self.population, self.index = population, index
+        self.policy = population.member_policy(index)
+        self.device = population.device
+
+    def act(self, obs: np.ndarray, explore: bool) -> np.ndarray:
+        return self.policy.act(obs)
+
+    def observe(self, transition: Transition) -> None:
+        raise NotImplementedError("a population member observes through the population")
+
+    def update(self) -> dict[str, torch.Tensor]:
+        raise NotImplementedError("a population member learns through the population")
+
+    def state_dict(self, with_buffer: bool = False) -> dict:
+        return self.population.member_state_dict(self.index, with_buffer)
+
+    def load_state_dict(self, state: dict) -> None:
+        raise NotImplementedError("resume a member with resume=<its run id>: it continues alone")
+
+
+class PopulationTrainer:
+    """One loop for K members: act all -> step each env -> observe all -> one update -> per
+    member: log, evaluate, checkpoint (each through its own :class:`Trainer`)."""
+
+    def __init__(self, agent: ActorCritic, trainers: list[Trainer]):
+        self.agent, self.trainers = agent, trainers
+
+    def run(self) -> list[dict[str, float]]:
+        agent, trainers = self.agent, self.trainers
+        settings = trainers[0].settings
+        obs = [t.env.reset(seed=t.settings.seed)[0] for t in trainers]
+        bar = tqdm(
+            total=settings.total_steps,
+            unit="step",
+            disable=not settings.progress,
+            dynamic_ncols=True,
+            mininterval=1.0,
+        )
+        start = time.perf_counter()
+        for t in trainers:
+            t._log_step, t._log_time = 0, start
+        latest: dict[str, torch.Tensor] = {}
+        try:
+            for _ in range(settings.total_steps):
+                actions = agent.act_population(np.stack(obs), explore=True)
+                transitions = []
+                for i, t in enumerate(trainers):
+                    next_obs, reward, terminated, truncated, info = t.env.step(actions[i])
+                    transitions.append(
+                        Transition(obs[i], actions[i], reward, next_obs, terminated, truncated)
+                    )
+                    obs[i] = next_obs
+                    t.progress.step += 1
+                    if terminated or truncated:
+                        t.progress.episodes += 1
+                        episode = info["episode"]
+                        t.tracker.log_metrics(
+                            {
+                                "train/episode_return": episode["r"],
+                                "train/episode_length": episode["l"],
+                            },
+                            t.progress.step,
+                        )
+                        obs[i], _ = t.env.reset()
+                agent.observe_population(transitions)
+                latest.update(agent.update())
+                for i, t in enumerate(trainers):
+                    t._after_step({k: v[i] for k, v in latest.items()}, bar)
+        except KeyboardInterrupt:
+            for t in trainers:
+                t._checkpoint_and_flush()
+            raise
+        finally:
+            bar.close()
+        sps = settings.total_steps / (time.perf_counter() - start)
+        summaries = []
+        for t in trainers:
+            summary = t.summary() | {"perf/sps": sps, "perf/population_sps": sps * len(trainers)}
+            t.tracker.log_metrics(summary, t.progress.step)
+            t._checkpoint_and_flush()
+            summaries.append(summary)
+        return summaries
+
+

@@ -17,6 +17,7 @@ import argparse
 import time
 
 import gymnasium as gym
+import numpy as np
 import torch
 from rounds import alternate, print_table
 
@@ -24,7 +25,7 @@ from walkers.agents.base import Transition
 from walkers.agents.ddpg import DDPG
 from walkers.agents.reinforce import Reinforce
 from walkers.agents.td3 import TD3
-from walkers.buffers import ReplayBuffer
+from walkers.buffers import DATA_FIELDS, ReplayBuffer
 from walkers.envs import env_spaces
 
 ENV_ID, HIDDEN, BATCH, WARMUP = "Walker2d-v5", 256, 256, 1_000
@@ -47,6 +48,30 @@ class WalkersLoop:
             agent.update()
             obs = next_obs if not (terminated or truncated) else env.reset()[0]
         self.obs = obs
+
+
+class PopulationLoop:
+    """The population loop (``population=K``): K envs, one batched update for all members."""
+
+    def __init__(self, k: int, **kwargs):
+        self.envs = [gym.make(ENV_ID) for _ in range(k)]
+        self.agent = TD3(**env_spaces(self.envs[0]), seed=0, population=k, **kwargs)
+        self.obs = np.stack([env.reset(seed=i)[0] for i, env in enumerate(self.envs)])
+        self.env_steps_per_step = k
+
+    def run(self, steps: int) -> None:
+        agent, envs, obs = self.agent, self.envs, self.obs
+        for _ in range(steps):
+            actions = agent.act_population(obs, explore=True)
+            transitions = []
+            for i, env in enumerate(envs):
+                next_obs, reward, terminated, truncated, _ = env.step(actions[i])
+                transitions.append(
+                    Transition(obs[i], actions[i], float(reward), next_obs, terminated, truncated)
+                )
+                obs[i] = next_obs if not (terminated or truncated) else env.reset()[0]
+            agent.observe_population(transitions)
+            agent.update()
 
 
 class SB3Loop:
@@ -82,6 +107,10 @@ def contenders() -> dict:
         "walkers TD3": lambda: WalkersLoop(TD3, hidden_sizes=[HIDDEN, HIDDEN], **common),
         "walkers DDPG": lambda: WalkersLoop(DDPG, hidden_sizes=[HIDDEN, HIDDEN], **common),
         "walkers REINFORCE": lambda: WalkersLoop(Reinforce, hidden_sizes=[HIDDEN, HIDDEN]),
+        # population=2: the aggregate env steps/s of 2 seeds trained together
+        "walkers TD3 K=2": lambda: PopulationLoop(
+            2, hidden_sizes=[HIDDEN, HIDDEN], **common
+        ),
     }
     try:
         import stable_baselines3  # noqa: F401
@@ -124,10 +153,10 @@ def main():
     for loop in loops.values():
         loop.run(WARMUP + 100)  # past the warm-up: every timed step learns
 
-    def steps_per_second(loop) -> float:
+    def steps_per_second(loop) -> float:  # env steps: a population steps K envs per loop step
         start = time.perf_counter()
         loop.run(args.steps)
-        return args.steps / (time.perf_counter() - start)
+        return args.steps * getattr(loop, "env_steps_per_step", 1) / (time.perf_counter() - start)
 
     sps = alternate(loops, steps_per_second, args.reps)
     print(
@@ -153,8 +182,8 @@ def main():
     )
     buffer = ReplayBuffer(1_000_000, obs_dim, act_dim, torch.device("cpu"))
     nbytes = sum(
-        t.numel() * t.element_size()
-        for t in (buffer.obs, buffer.action, buffer.reward, buffer.next_obs, buffer.terminated)
+        getattr(buffer, name).numel() * getattr(buffer, name).element_size()
+        for name in DATA_FIELDS
     )
     print(f"Replay buffer, 1M {ENV_ID} transitions, float32: {nbytes / 1e6:.0f} MB preallocated.")
 

@@ -101,9 +101,18 @@ def test_population_run_logs_each_member_as_its_own_run(store):
         assert run_cfg.seed == int(run.data.params["seed"]) and run_cfg.population == 1
         assert agent.act(env.reset(seed=0)[0], explore=False).shape == (1,)
     env.close()
-    returns = [[m.value for m in client.get_metric_history(r.info.run_id, "train/episode_return")]
-               for r in runs]
+    returns = [
+        [m.value for m in client.get_metric_history(r.info.run_id, "train/episode_return")]
+        for r in runs
+    ]
     assert returns[0] != returns[1]  # different seeds, different experience
+    # a member's run resumes like any run, continuing that member alone
+    member = runs[1].info.run_id
+    resumed = compose_cfg([f"resume={member}", "total_steps=700", *store["overrides"]])
+    train(resumed, overrides=["total_steps=700"])
+    assert client.get_run(member).info.status == "FINISHED"
+    steps = [m.step for m in client.get_metric_history(member, "eval/return_mean")]
+    assert steps == [300, 600, 700]
 
 
 @pytest.mark.parametrize(

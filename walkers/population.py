@@ -22,36 +22,11 @@ import torch
 from tqdm import tqdm
 
 from walkers.agents.actor_critic import ActorCritic
-from walkers.agents.base import Agent, Transition
+from walkers.agents.base import Transition
 from walkers.trainer import Trainer
 
 POPULATION_TAG = "walkers.population"
 MEMBER_TAG = "walkers.population_member"
-
-
-class MemberAgent(Agent):
-    """Member ``index`` of a population, seen by its :class:`Trainer` as an agent of its own:
-    it acts (evaluations) and checkpoints; the population loop does the learning."""
-
-    def __init__(self, population: ActorCritic, index: int):
-        self.population, self.index = population, index
-        self.policy = population.member_policy(index)
-        self.device = population.device
-
-    def act(self, obs: np.ndarray, explore: bool) -> np.ndarray:
-        return self.policy.act(obs)
-
-    def observe(self, transition: Transition) -> None:
-        raise NotImplementedError("a population member observes through the population")
-
-    def update(self) -> dict[str, torch.Tensor]:
-        raise NotImplementedError("a population member learns through the population")
-
-    def state_dict(self, with_buffer: bool = False) -> dict:
-        return self.population.member_state_dict(self.index, with_buffer)
-
-    def load_state_dict(self, state: dict) -> None:
-        raise NotImplementedError("resume a member with resume=<its run id>: it continues alone")
 
 
 class PopulationTrainer:
@@ -74,7 +49,7 @@ class PopulationTrainer:
         )
         start = time.perf_counter()
         for t in trainers:
-            t._log_step, t._log_time = 0, start
+            t.start_clock(start)
         latest: dict[str, torch.Tensor] = {}
         try:
             for _ in range(settings.total_steps):
@@ -88,33 +63,21 @@ class PopulationTrainer:
                     obs[i] = next_obs
                     t.progress.step += 1
                     if terminated or truncated:
-                        t.progress.episodes += 1
-                        episode = info["episode"]
-                        t.tracker.log_metrics(
-                            {
-                                "train/episode_return": episode["r"],
-                                "train/episode_length": episode["l"],
-                            },
-                            t.progress.step,
-                        )
+                        t.record_episode(info)
                         obs[i], _ = t.env.reset()
                 agent.observe_population(transitions)
                 latest.update(agent.update())
-                for i, t in enumerate(trainers):
-                    t._after_step({k: v[i] for k, v in latest.items()}, bar)
+                logging = trainers[0].progress.step % settings.log_every == 0
+                for i, t in enumerate(trainers):  # losses are read only when they are logged
+                    t.after_step({k: v[i] for k, v in latest.items()} if logging else {}, bar)
         except KeyboardInterrupt:
             for t in trainers:
-                t._checkpoint_and_flush()
+                t.checkpoint_and_flush()
             raise
         finally:
             bar.close()
         sps = settings.total_steps / (time.perf_counter() - start)
-        summaries = []
-        for t in trainers:
-            summary = t.summary() | {"perf/sps": sps, "perf/population_sps": sps * len(trainers)}
-            t.tracker.log_metrics(summary, t.progress.step)
-            t._checkpoint_and_flush()
-            summaries.append(summary)
-        return summaries
+        aggregate = {"perf/population_sps": sps * len(trainers)}
+        return [t.finish(sps, aggregate) for t in trainers]
 
 

@@ -18,13 +18,13 @@ matplotlib.use("Agg")  # files only, never a window
 import matplotlib.pyplot as plt  # noqa: E402
 
 from walkers import stats  # noqa: E402
-from walkers.tracking import ENV_STEPS  # noqa: E402
+from walkers.tracking import ENV_STEPS, GRADIENT_STEPS  # noqa: E402
 
 if TYPE_CHECKING:
     from walkers.compare import AlgoResult, Comparison, PairResult
 
 QUANTITY_NAMES = {"score": "final return", "auc": "AUC (rate of learning)"}
-AXIS_NAMES = {"env_steps": "env steps", "gradient_steps": "gradient steps"}
+AXIS_NAMES = {ENV_STEPS: "env steps", GRADIENT_STEPS: "gradient steps"}
 
 
 def _num(x: float) -> str:

@@ -30,7 +30,7 @@ from walkers.agents.base import Agent, resolve_device
 from walkers.cli import exit_on_bad_overrides
 from walkers.envs import env_spaces, make_env
 from walkers.errors import CheckpointError, ConfigError
-from walkers.population import MEMBER_TAG, POPULATION_TAG, MemberAgent, PopulationTrainer
+from walkers.population import MEMBER_TAG, POPULATION_TAG, PopulationTrainer
 from walkers.trainer import OfflineTrainer, Trainer, TrainerSettings, TrainingDiverged
 from walkers.trial import PRUNED_TAG, TrialReporter
 from walkers.validate import is_offline, validate
@@ -199,7 +199,7 @@ def _train_population(cfg: DictConfig, client) -> float:
                 trackers.append(_open_run(client, member, extra_tags=tags))
             trainers = [
                 Trainer(
-                    MemberAgent(agent, i),
+                    agent.member_policy(i),
                     envs[i],
                     eval_envs[i],
                     tracker,

@@ -114,7 +114,7 @@ class Trainer:
         self.tracker.log_artifact(path, "checkpoints")
         return path
 
-    def _checkpoint_and_flush(self) -> None:
+    def checkpoint_and_flush(self) -> None:
         # Metrics reach MLflow only up to a checkpoint: a resumed run never logs a step twice.
         self.save_checkpoint("last.pt")
         self.last_checkpoint_step = self.progress.step
@@ -183,20 +183,29 @@ class Trainer:
             mininterval=1.0,
         )
         start_step, start_time = p.step, time.perf_counter()
-        self._log_step, self._log_time = start_step, start_time
+        self.start_clock(start_time)
         try:
             self._loop(bar)
         except KeyboardInterrupt:
-            self._checkpoint_and_flush()
+            self.checkpoint_and_flush()
             raise
         finally:
             bar.close()
         elapsed = time.perf_counter() - start_time
-        summary = self.summary()
-        if p.step > start_step:
-            summary[self.rate_metric] = (p.step - start_step) / elapsed
-        self.tracker.log_metrics(summary, p.step)
-        self._checkpoint_and_flush()
+        rate = (p.step - start_step) / elapsed if p.step > start_step else None
+        return self.finish(rate)
+
+    def start_clock(self, now: float) -> None:
+        """Throughput is measured from ``now`` (a ``time.perf_counter()``) at the current step."""
+        self._log_step, self._log_time = self.progress.step, now
+
+    def finish(self, rate: float | None, extra: dict[str, float] | None = None) -> dict:
+        """Log the ``final/*`` summary (with ``rate`` and ``extra``), write last.pt, flush."""
+        summary = self.summary() | (extra or {})
+        if rate is not None:
+            summary[self.rate_metric] = rate
+        self.tracker.log_metrics(summary, self.progress.step)
+        self.checkpoint_and_flush()
         return summary
 
     def summary(self) -> dict[str, float]:
@@ -205,7 +214,7 @@ class Trainer:
 
     def _loop(self, bar: tqdm) -> None:
         """Act, step, observe, update until the budget is spent (or a pruner stops the run)."""
-        s, p, agent, env, tracker = self.settings, self.progress, self.agent, self.env, self.tracker
+        s, p, agent, env = self.settings, self.progress, self.agent, self.env
         # A fresh run seeds its first reset with `seed`; a resumed one starts a new episode seeded
         # by the episode count (an interrupted episode cannot be continued).
         obs, _ = env.reset(seed=s.seed + p.episodes)
@@ -218,17 +227,21 @@ class Trainer:
             p.step += 1
             obs = next_obs
             if terminated or truncated:
-                p.episodes += 1
-                episode = info["episode"]  # true return, recorded before any reward shaping
-                tracker.log_metrics(
-                    {"train/episode_return": episode["r"], "train/episode_length": episode["l"]},
-                    p.step,
-                )
+                self.record_episode(info)
                 obs, _ = env.reset()
-            if self._after_step(losses, bar):
+            if self.after_step(losses, bar):
                 return
 
-    def _after_step(self, losses: dict[str, torch.Tensor], bar: tqdm) -> bool:
+    def record_episode(self, info: dict) -> None:
+        """A training episode ended at the current step: count it, log its true return."""
+        p = self.progress
+        p.episodes += 1
+        episode = info["episode"]  # recorded before any reward shaping
+        self.tracker.log_metrics(
+            {"train/episode_return": episode["r"], "train/episode_length": episode["l"]}, p.step
+        )
+
+    def after_step(self, losses: dict[str, torch.Tensor], bar: tqdm) -> bool:
         """Log, evaluate, film, checkpoint when due; True when the run should stop early."""
         s, p = self.settings, self.progress
         if p.step % s.log_every == 0:
@@ -251,7 +264,7 @@ class Trainer:
         if s.video_every and p.step % s.video_every == 0:
             self.record_video()
         if p.step % s.checkpoint_every == 0 and p.step < s.total_steps:  # the end: in run()
-            self._checkpoint_and_flush()
+            self.checkpoint_and_flush()
         if p.step % 100 == 0:
             bar.update(p.step - bar.n)
         return False
@@ -280,7 +293,7 @@ class OfflineTrainer(Trainer):
         while p.step < self.settings.total_steps:
             losses = self.agent.update()
             p.step += 1
-            if self._after_step(losses, bar):
+            if self.after_step(losses, bar):
                 return
 
     def evaluate(self) -> float:

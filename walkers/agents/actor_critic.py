@@ -200,9 +200,9 @@ class ActorCritic(Agent):
                 noise.reset()
         self.steps += 1
 
-    def member_policy(self, i: int) -> MemberPolicy:
-        """Member ``i`` as an agent that acts (for evaluation rollouts)."""
-        return MemberPolicy(self, i)
+    def member_policy(self, i: int) -> MemberAgent:
+        """Member ``i`` as an agent of its own (evaluation rollouts, its checkpoints)."""
+        return MemberAgent(self, i)
 
     # --- learning -----------------------------------------------------------------------------
     def _sample(self) -> Batch:
@@ -364,21 +364,29 @@ class ActorCritic(Agent):
         }
 
 
-class MemberPolicy:
-    """One member of a population, acting greedily (what evaluation rollouts need)."""
+class MemberAgent(Agent):
+    """Member ``index`` of a population seen as an agent of its own: it acts greedily
+    (evaluations) and checkpoints as a single agent; the population does the learning."""
 
     def __init__(self, population: ActorCritic, index: int):
-        self.population, self.members = population, slice(index, index + 1)
+        self.population, self.index = population, index
+        self.members = slice(index, index + 1)
+        self.device = population.device
 
     def act(self, obs: np.ndarray, explore: bool = False) -> np.ndarray:
-        agent = self.population
         with torch.no_grad():
-            obs_t = torch.as_tensor(obs, dtype=torch.float32, device=agent.device)
-            action = agent.actor(obs_t.view(1, 1, -1), members=self.members)[0, 0]
+            obs_t = torch.as_tensor(obs, dtype=torch.float32, device=self.device)
+            action = self.population.actor(obs_t.view(1, 1, -1), members=self.members)[0, 0]
         return action.cpu().numpy().astype(np.float32)
 
-    def begin_episode(self) -> None:
-        pass
+    def observe(self, transition: Transition) -> None:
+        raise NotImplementedError("a population member observes through the population")
 
-    def record_reward(self, reward: float) -> None:
-        pass
+    def update(self) -> dict[str, torch.Tensor]:
+        raise NotImplementedError("a population member learns through the population")
+
+    def state_dict(self, with_buffer: bool = False) -> dict:
+        return self.population.member_state_dict(self.index, with_buffer)
+
+    def load_state_dict(self, state: dict) -> None:
+        raise NotImplementedError("resume a member with resume=<its run id>: it continues alone")

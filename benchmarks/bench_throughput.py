@@ -105,12 +105,14 @@ def contenders() -> dict:
     common = {"lr": 3e-4, "batch_size": BATCH, "learning_starts": WARMUP}
     loops = {
         "walkers TD3": lambda: WalkersLoop(TD3, hidden_sizes=[HIDDEN, HIDDEN], **common),
+        "walkers TD3 compile": lambda: WalkersLoop(
+            TD3, hidden_sizes=[HIDDEN, HIDDEN], compile=True, **common
+        ),
         "walkers DDPG": lambda: WalkersLoop(DDPG, hidden_sizes=[HIDDEN, HIDDEN], **common),
         "walkers REINFORCE": lambda: WalkersLoop(Reinforce, hidden_sizes=[HIDDEN, HIDDEN]),
-        # population=2: the aggregate env steps/s of 2 seeds trained together
-        "walkers TD3 K=2": lambda: PopulationLoop(
-            2, hidden_sizes=[HIDDEN, HIDDEN], **common
-        ),
+        # population=K: the aggregate env steps/s of K seeds trained together
+        "walkers TD3 K=2": lambda: PopulationLoop(2, hidden_sizes=[HIDDEN, HIDDEN], **common),
+        "walkers TD3 K=4": lambda: PopulationLoop(4, hidden_sizes=[HIDDEN, HIDDEN], **common),
     }
     try:
         import stable_baselines3  # noqa: F401
@@ -151,7 +153,7 @@ def main():
     args = parser.parse_args()
     loops = contenders()
     for loop in loops.values():
-        loop.run(WARMUP + 100)  # past the warm-up: every timed step learns
+        loop.run(WARMUP + 100)  # past the warm-up (and any compile): every timed step learns
 
     def steps_per_second(loop) -> float:  # env steps: a population steps K envs per loop step
         start = time.perf_counter()

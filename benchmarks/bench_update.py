@@ -1,11 +1,13 @@
 """TD3 update step: walkers vs a plain eager PyTorch TD3 update, interleaved in one process.
 
-    make bench            # or: .venv/bin/python benchmarks/bench_update.py --reps 8
+    make bench            # or: .venv/bin/python benchmarks/bench_update.py --reps 8 [--device cuda]
 
-Walker2d shapes (17-d observations, 6 actions), 256-256 networks, batch 256, fused Adam in
-both. The plain reference is the textbook layout: two separate critic modules, nn.Linear layers.
-Rounds alternate between the two so machine noise hits both alike; the table reports medians and
-the ratio (below 1: walkers is faster). A benchmark, not a test: nothing here asserts on time.
+Walker2d shapes (17-d observations, 6 actions), 256-256 networks, batch 256, fused Adam in all;
+walkers eager and with ``compile=True`` (its loss computations through torch.compile; CUDA
+graphs on a GPU). The plain reference is the textbook layout: two separate critic modules,
+nn.Linear layers. Rounds alternate so machine noise hits all alike; the table reports medians
+and the ratio (below 1: walkers is faster). On the CPU a second table breaks the eager update
+down by kind of work. A benchmark, not a test: nothing here asserts on time.
 """
 
 from __future__ import annotations
@@ -29,13 +31,17 @@ OBS, ACT, BATCH, CAPACITY = 17, 6, 256, 100_000
 class PlainTD3Update:
     """The reference: separate critics, separate optimizer steps, one op per line."""
 
-    def __init__(self):
+    def __init__(self, device: torch.device):
         def mlp(i, o):
             return nn.Sequential(
                 nn.Linear(i, 256), nn.ReLU(), nn.Linear(256, 256), nn.ReLU(), nn.Linear(256, o)
             )
 
-        self.actor, self.q1, self.q2 = mlp(OBS, ACT), mlp(OBS + ACT, 1), mlp(OBS + ACT, 1)
+        self.actor, self.q1, self.q2 = (
+            mlp(OBS, ACT).to(device),
+            mlp(OBS + ACT, 1).to(device),
+            mlp(OBS + ACT, 1).to(device),
+        )
         self.actor_t, self.q1_t, self.q2_t = (
             copy.deepcopy(m) for m in (self.actor, self.q1, self.q2)
         )
@@ -43,16 +49,17 @@ class PlainTD3Update:
         self.q_opt = torch.optim.Adam(critic_params, lr=3e-4, fused=True)
         self.a_opt = torch.optim.Adam(self.actor.parameters(), lr=3e-4, fused=True)
         self.data = [
-            torch.randn(CAPACITY, OBS),
-            torch.rand(CAPACITY, ACT) * 2 - 1,
-            torch.randn(CAPACITY),
-            torch.randn(CAPACITY, OBS),
-            torch.zeros(CAPACITY),
+            torch.randn(CAPACITY, OBS, device=device),
+            torch.rand(CAPACITY, ACT, device=device) * 2 - 1,
+            torch.randn(CAPACITY, device=device),
+            torch.randn(CAPACITY, OBS, device=device),
+            torch.zeros(CAPACITY, device=device),
         ]
+        self.device = device
         self.n = 0
 
     def __call__(self):
-        idx = torch.randint(0, CAPACITY, (BATCH,))
+        idx = torch.randint(0, CAPACITY, (BATCH,), device=self.device)
         obs, act, rew, next_obs, term = (d[idx] for d in self.data)
         with torch.no_grad():
             noise = (torch.randn_like(act) * 0.2).clamp(-0.5, 0.5)
@@ -80,38 +87,116 @@ class PlainTD3Update:
                         tp.mul_(0.995).add_(p, alpha=0.005)
 
 
-def walkers_update():
-    agent = TD3(OBS, [-1.0] * ACT, [1.0] * ACT, learning_starts=0, buffer_size=CAPACITY)
+def walkers_update(device: torch.device, compile: bool = False):
+    agent = TD3(
+        OBS,
+        [-1.0] * ACT,
+        [1.0] * ACT,
+        learning_starts=0,
+        buffer_size=CAPACITY,
+        compile=compile,
+        device=str(device),
+    )
     rng = np.random.default_rng(0)
     for _ in range(CAPACITY // 10):
         o = rng.normal(size=OBS).astype(np.float32)
         a = rng.uniform(-1, 1, ACT).astype(np.float32)
         agent.observe(Transition(o, a, 1.0, o, False, False))
+    for _ in range(4):  # a compiled update compiles here, not inside the timed rounds
+        agent.update()
     return agent.update
 
 
-def time_ms(fn, n: int) -> float:
+def time_ms(fn, n: int, device: torch.device) -> float:
     for _ in range(10):
         fn()
+    synchronize(device)
     start = time.perf_counter()
     for _ in range(n):
         fn()
+    synchronize(device)
     return (time.perf_counter() - start) / n * 1e3
+
+
+def synchronize(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize()
+
+
+# Where an eager update's time goes: aten ops by kind; the rest (Python, autograd engine,
+# dispatch, the optimizer's Python wrapper) is what the profiler sees outside any aten op.
+MATMUL_OPS = {"aten::mm", "aten::addmm", "aten::bmm", "aten::baddbmm"}
+OPTIMIZER_OPS = {
+    "aten::_fused_adam_", "aten::_foreach_lerp_", "aten::lerp_", "aten::_foreach_add_",
+    "aten::_foreach_sub_",
+}  # fmt: skip
+ELEMENTWISE_OPS = {
+    "aten::clamp_min", "aten::threshold_backward", "aten::mul", "aten::add", "aten::add_",
+    "aten::sub", "aten::pow", "aten::tanh", "aten::tanh_backward", "aten::clamp", "aten::min",
+    "aten::sum", "aten::mean", "aten::fill_", "aten::isfinite", "aten::rsub", "aten::neg",
+    "aten::masked_fill_", "aten::randn", "aten::normal_", "aten::abs", "aten::eq", "aten::ne",
+    "aten::logical_and", "aten::bitwise_and_", "aten::bitwise_not", "aten::div",
+}  # fmt: skip
+SAMPLING_OPS = {"aten::index", "aten::randint", "aten::random_", "aten::cat", "aten::copy_"}
+
+
+def breakdown(update, n: int = 100) -> dict[str, float]:
+    """ms per update in each kind of work (torch.profiler, self time of each op)."""
+    from torch.profiler import ProfilerActivity, profile
+
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        start = time.perf_counter()
+        for _ in range(n):
+            update()
+        wall = (time.perf_counter() - start) / n * 1e3
+    kinds = {"matmuls": 0.0, "Adam, target updates": 0.0, "elementwise": 0.0}
+    kinds |= {"batch sampling, copies": 0.0, "views, allocations, other ops": 0.0}
+    for event in prof.key_averages():
+        ms = event.self_cpu_time_total / 1e3 / n
+        if not event.key.startswith("aten::"):
+            continue
+        if event.key in MATMUL_OPS:
+            kinds["matmuls"] += ms
+        elif event.key in OPTIMIZER_OPS:
+            kinds["Adam, target updates"] += ms
+        elif event.key in ELEMENTWISE_OPS:
+            kinds["elementwise"] += ms
+        elif event.key in SAMPLING_OPS:
+            kinds["batch sampling, copies"] += ms
+        else:
+            kinds["views, allocations, other ops"] += ms
+    kinds["Python, autograd engine, dispatch"] = wall - sum(kinds.values())
+    return kinds | {"update (profiled)": wall}
 
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--reps", type=int, default=6, help="alternating rounds")
     parser.add_argument("--updates", type=int, default=100, help="updates per round")
+    parser.add_argument("--device", default="cpu", help="cpu | cuda")
     args = parser.parse_args()
+    device = torch.device(args.device)
     torch.manual_seed(0)
-    contenders = {"plain eager TD3": PlainTD3Update(), "walkers TD3": walkers_update()}
-    times = alternate(contenders, lambda fn: time_ms(fn, args.updates), args.reps)
+    contenders = {
+        "plain eager TD3": PlainTD3Update(device),
+        "walkers TD3": walkers_update(device),
+        "walkers TD3 compile": walkers_update(device, compile=True),
+    }
+    times = alternate(contenders, lambda fn: time_ms(fn, args.updates, device), args.reps)
+    where = f"{torch.get_num_threads()} threads" if device.type == "cpu" else str(device)
     print(
-        f"TD3 update, Walker2d shapes, batch {BATCH}, {torch.get_num_threads()} threads, "
+        f"TD3 update, Walker2d shapes, batch {BATCH}, {where}, "
         f"{args.reps} rounds x {args.updates} updates"
     )
     print_table(times, "median ms", baseline="plain eager TD3")
+    if device.type == "cpu":
+        print("\nWhere the walkers TD3 update's time goes (eager, torch.profiler self times):")
+        kinds = breakdown(contenders["walkers TD3"])
+        total = kinds["update (profiled)"]
+        print(f"| {'work':<34} | ms/update | share |")
+        print(f"|{'-' * 36}|-----------|-------|")
+        for kind, ms in kinds.items():
+            print(f"| {kind:<34} | {ms:>9.2f} | {ms / total:>5.0%} |")
 
 
 if __name__ == "__main__":

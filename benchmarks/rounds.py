@@ -20,9 +20,12 @@ def print_table(results: dict[str, list[float]], unit: str, baseline: str) -> No
     base = statistics.median(results[baseline]) if baseline in results else None
     best = min if "ms" in unit else max  # for times lower is better, for rates higher
     label = f"ratio to {baseline}"
-    print(f"| {'implementation':<18} | {unit:>11} | {'best':>7} | {label} |")
-    print(f"|{'-' * 20}|{'-' * 13}|{'-' * 9}|{'-' * (len(label) + 2)}|")
+    width = max(18, *(len(name) for name in results))
+    print(f"| {'implementation':<{width}} | {unit:>11} | {'best':>7} | {label} |")
+    print(f"|{'-' * (width + 2)}|{'-' * 13}|{'-' * 9}|{'-' * (len(label) + 2)}|")
     for name, values in results.items():
         median = statistics.median(values)
         ratio = f"{median / base:.2f}" if base else "n/a"
-        print(f"| {name:<18} | {median:>11.2f} | {best(values):>7.2f} | {ratio:>{len(label)}} |")
+        print(
+            f"| {name:<{width}} | {median:>11.2f} | {best(values):>7.2f} | {ratio:>{len(label)}} |"
+        )

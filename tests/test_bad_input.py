@@ -27,6 +27,7 @@ CASES = [
     (["algo=td3", "+algo.momentum=0.9"], ["algo", "momentum"]),
     (["resume=0123456789abcdef"], ["resume='0123456789abcdef'", "not a run"]),
     (["tracking.uri=nosuchscheme://x"], ["tracking.uri='nosuchscheme://x'", "sqlite"]),
+    (["algo.compile=yes"], ["algo.compile='yes'", "true or false"]),
 ]
 
 

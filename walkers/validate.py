@@ -92,6 +92,7 @@ RULES: list[tuple[str, callable, str]] = [
     ("algo.policy_noise", non_negative, "a number >= 0"),
     ("algo.noise_clip", non_negative, "a number >= 0"),
     ("algo.exploration_noise", non_negative, "a number >= 0"),
+    ("algo.compile", lambda v: isinstance(v, bool), "true or false"),
     ("algo.context_length", positive_int, "an integer > 0"),
     ("algo.embed_dim", positive_int, "an integer > 0"),
     ("algo.n_layers", positive_int, "an integer > 0"),

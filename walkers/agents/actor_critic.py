@@ -105,6 +105,7 @@ class ActorCritic(Agent):
         critic_hidden_sizes: Sequence[int] | None = None,
         noise_type: str = "gaussian",
         population: int = 1,
+        compile: bool = False,
         device: str = "cpu",
         seed: int = 0,
     ):
@@ -160,6 +161,18 @@ class ActorCritic(Agent):
         self.num_updates = 0  # critic updates done
         shape = () if self.population == 1 else (self.population,)
         self.guard = NonFiniteGuard(self.device, shape)
+        self._critic_loss, self._actor_loss = self.critic_loss, self.actor_loss
+        if compile:
+            self._compile_losses()
+
+    def _compile_losses(self) -> None:
+        """``compile=True``: the two loss computations, forward and backward, through
+        ``torch.compile`` (fused elementwise work, less dispatch). On CUDA with CUDA graphs
+        (``reduce-overhead``), where a small update is launch-bound. The optimizer steps stay
+        eager: fused Adam is one kernel already and keeps the NaN guard's step skip."""
+        mode = "reduce-overhead" if self.device.type == "cuda" else None
+        self._critic_loss = torch.compile(self.critic_loss, mode=mode)
+        self._actor_loss = torch.compile(self.actor_loss, mode=mode)
 
     # --- acting -------------------------------------------------------------------------------
     def act(self, obs: np.ndarray, explore: bool) -> np.ndarray:
@@ -217,8 +230,8 @@ class ActorCritic(Agent):
         return x if x.dim() == 2 else x.repeat_interleave(self.num_critics, dim=0)
 
     def _per_member(self, x: torch.Tensor) -> torch.Tensor:
-        """A ``(K,)`` diagnostic; a scalar for a single agent."""
-        return x.detach()[0] if self.population == 1 else x.detach()
+        """A ``(K,)`` diagnostic; a scalar for a single agent. A copy: CUDA graphs reuse outputs."""
+        return (x.detach()[0] if self.population == 1 else x.detach()).clone()
 
     def _skip_bad_members(self, optimizer, bad: torch.Tensor, copies: int) -> None:
         """Make the next ``optimizer.step()`` skip members whose ``bad`` is 1, without a sync.
@@ -237,46 +250,61 @@ class ActorCritic(Agent):
                 if param.grad is not None:
                     param.grad.masked_fill_(skip, 0.0)
 
-    def update(self) -> dict[str, torch.Tensor]:
-        if self.steps < self.learning_starts or len(self.buffer) < self.batch_size:
-            return {}
-        self.num_updates += 1
-        b = self._sample()
-        K, C = self.population, self.num_critics
+    def critic_loss(
+        self, b: Batch, smoothing_noise: torch.Tensor | None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Per-member critic loss ``(K,)`` and mean Q ``(K,)`` (TD3 paper, Algorithm 1).
 
-        # Critic: regress every Q_i onto y = r + gamma * (1 - terminated) * min_j Q'_j(s', a~),
-        # a~ = clip(pi'(s') + clip(eps, -c, c), low, high), eps ~ N(0, sigma)   (smoothing)
+        Every Q_i regresses onto y = r + gamma * (1 - terminated) * min_j Q'_j(s', a~) with
+        a~ = clip(pi'(s') + clip(sigma * eps, -c, c), low, high), eps ~ N(0, 1) given as
+        ``smoothing_noise`` (drawn outside so a compiled update draws the same numbers as eager).
+        """
+        K, C = self.population, self.num_critics
         with torch.no_grad():
             next_action = self.actor_target(b.next_obs)
-            if self.policy_noise > 0:
-                eps = torch.randn_like(next_action) * self.policy_noise
+            if smoothing_noise is not None:
+                eps = smoothing_noise * self.policy_noise
                 eps = eps.clamp(-self.noise_clip, self.noise_clip) * self.actor.action_scale
                 next_action = (next_action + eps).clamp(self.low_t, self.high_t)
             next_q = self.critic_target(self._per_critic(b.next_obs), self._per_critic(next_action))
             next_q = next_q.unflatten(0, (K, C)).min(dim=1).values  # (K, batch)
             target = b.reward + self.gamma * (1.0 - b.terminated) * next_q
         q = self.critic(self._per_critic(b.obs), self._per_critic(b.action)).unflatten(0, (K, C))
-        member_critic_loss = (q - target.unsqueeze(1)).pow(2).mean(dim=2).sum(dim=1)  # (K,)
+        member_loss = (q - target.unsqueeze(1)).pow(2).mean(dim=2).sum(dim=1)
+        return member_loss, q.detach().mean(dim=(1, 2))
+
+    def actor_loss(self, obs: torch.Tensor) -> torch.Tensor:
+        """Per-member actor loss ``(K,)``: -Q_1(s, pi(s)), the deterministic policy gradient."""
+        q_pi = self.critic(obs, self.actor(obs), members=slice(0, None, self.num_critics))
+        return -q_pi.mean(dim=-1)
+
+    def update(self) -> dict[str, torch.Tensor]:
+        if self.steps < self.learning_starts or len(self.buffer) < self.batch_size:
+            return {}
+        self.num_updates += 1
+        b = self._sample()
+
+        smoothing_noise = torch.randn_like(b.action) if self.policy_noise > 0 else None
+        member_critic_loss, q_mean = self._critic_loss(b, smoothing_noise)
         self.critic_optimizer.zero_grad(set_to_none=True)
         member_critic_loss.sum().backward()
         # NaN/inf guard without a host sync (see _skip_bad_members).
         bad = NonFiniteGuard.bad_members(member_critic_loss)
-        self._skip_bad_members(self.critic_optimizer, bad, copies=C)
+        self._skip_bad_members(self.critic_optimizer, bad, copies=self.num_critics)
         self.critic_optimizer.step()
         self.guard.record(self._per_member(bad))
         metrics = {
             "loss/critic": self._per_member(member_critic_loss),
-            "train/q_mean": self._per_member(q.mean(dim=(1, 2))),
+            "train/q_mean": self._per_member(q_mean),
         }
 
         # Delayed policy update: maximize Q_1(s, pi(s)), then move the targets.
         if self.num_updates % self.policy_delay == 0:
-            first_critics = slice(0, None, C)  # Q_1 of every member
-            q_pi = self.critic(b.obs, self.actor(b.obs), members=first_critics)
-            member_actor_loss = -q_pi.mean(dim=-1)  # (K,)
+            self.critic.requires_grad_(False)  # the actor's gradient only: no critic weight grads
+            member_actor_loss = self._actor_loss(b.obs)
+            self.critic.requires_grad_(True)
             self.actor_optimizer.zero_grad(set_to_none=True)
-            actor_params = list(self.actor.parameters())
-            member_actor_loss.sum().backward(inputs=actor_params)  # no critic weight grads
+            member_actor_loss.sum().backward()
             bad = NonFiniteGuard.bad_members(member_critic_loss, member_actor_loss)
             self._skip_bad_members(self.actor_optimizer, bad, copies=1)
             self.actor_optimizer.step()

@@ -67,6 +67,30 @@ def test_a_member_cut_out_is_an_ordinary_agent():
     assert len(single.buffer) == 60 and single.update()  # it keeps learning on its own
 
 
+def test_members_cut_out_and_loaded_back_continue_as_the_same_population():
+    original = TD3(3, [-2.0], [2.0], population=3, seed=0, **SMALL)
+    feed(original, np.array([0.5, 1.0, -1.0]))
+    rebuilt = TD3(3, [-2.0], [2.0], population=3, seed=7, **SMALL)  # other seeds, fresh Adam
+    for i in range(3):
+        rebuilt.load_member_state_dict(i, original.member_state_dict(i, with_buffer=True))
+    for agent in (original, rebuilt):  # the same global RNG for the target-smoothing noise
+        torch.manual_seed(1)
+        feed(agent, np.array([0.5, 1.0, -1.0]), steps=30)
+    for name in ("actor", "critic", "actor_target", "critic_target"):
+        rebuilt_state = getattr(rebuilt, name).state_dict()
+        for key, value in getattr(original, name).state_dict().items():
+            assert torch.equal(value, rebuilt_state[key]), f"{name}.{key}"
+    for i in range(3):  # exploration noise, buffers and Adam moments all carried over
+        a, b = original.member_state_dict(i), rebuilt.member_state_dict(i)
+        assert a["rng"] == b["rng"] and a["buffer"]["pos"] == b["buffer"]["pos"]
+        for x, y in zip(
+            a["critic_optimizer"]["state"].values(),
+            b["critic_optimizer"]["state"].values(),
+            strict=True,
+        ):
+            assert all(torch.equal(x[k], y[k]) for k in ("step", "exp_avg", "exp_avg_sq"))
+
+
 def test_population_run_logs_each_member_as_its_own_run(store):
     train(
         compose_cfg(
@@ -113,6 +137,44 @@ def test_population_run_logs_each_member_as_its_own_run(store):
     assert client.get_run(member).info.status == "FINISHED"
     steps = [m.step for m in client.get_metric_history(member, "eval/return_mean")]
     assert steps == [300, 600, 700]
+
+
+def test_a_population_resumes_together(store):
+    client, small = store["client"], ["algo.learning_starts=100", "algo.hidden_sizes=[16,16]"]
+    train(
+        compose_cfg(
+            ["algo=ddpg", "env=pendulum", "population=2", *TINY, *small, *store["overrides"]]
+        )
+    )
+    ids = [r.info.run_id for r in sorted(all_runs(client), key=lambda r: r.data.params["seed"])]
+
+    def resume(run_ids: list[str], total_steps: int):
+        given = [f"total_steps={total_steps}"]
+        train(compose_cfg([f"resume=[{','.join(run_ids)}]", *given, *store["overrides"]]), given)
+
+    with pytest.raises(ConfigError, match="two or more different runs"):
+        resume([ids[0], ids[0]], 900)
+    resume(ids, 900)
+    assert len(all_runs(client)) == 2  # the same runs, continued
+    for run_id, seed in zip(ids, ["0", "1"], strict=True):
+        run = client.get_run(run_id)
+        assert run.info.status == "FINISHED" and run.data.params["seed"] == seed
+        assert run.data.tags["walkers.population"] == "2"
+        evals = [m.step for m in client.get_metric_history(run_id, "eval/return_mean")]
+        assert evals == [300, 600, 900]  # no step logged twice
+        losses = [m.step for m in client.get_metric_history(run_id, "loss/critic")]
+        assert losses == sorted(set(losses)) and losses[-1] == 900
+    # Runs at different steps or of different configurations do not resume together.
+    train(
+        compose_cfg([f"resume={ids[1]}", "total_steps=1000", *store["overrides"]]),
+        ["total_steps=1000"],
+    )
+    with pytest.raises(ConfigError, match="at step 900 and run .* at step 1000"):
+        resume(ids, 1200)
+    train(compose_cfg(["algo=td3", "env=pendulum", *TINY, *small, *store["overrides"]]))
+    td3 = next(r.info.run_id for r in all_runs(client) if r.info.run_id not in ids)
+    with pytest.raises(ConfigError, match="differ in algo"):
+        resume([ids[0], td3], 1200)
 
 
 @pytest.mark.parametrize(

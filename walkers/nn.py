@@ -94,6 +94,13 @@ class EnsembleActor(nn.Module):
             state[f"net.{2 * k}.bias"] = layer.bias[i, 0].clone()
         return state
 
+    @torch.no_grad()
+    def load_member_state(self, i: int, state: dict[str, torch.Tensor]) -> None:
+        """Member ``i``'s weights from an :class:`Actor` state dict (the inverse of the above)."""
+        for k, layer in enumerate(self.layers):
+            layer.weight[i] = state[f"net.{2 * k}.weight"].T
+            layer.bias[i, 0] = state[f"net.{2 * k}.bias"]
+
 
 class EnsembleLayerNorm(nn.Module):
     """LayerNorm over the feature dimension with a separate affine transform per member."""

@@ -7,10 +7,11 @@ The agent holds all members as ensembles (:class:`walkers.agents.actor_critic.Ac
 MLflow run, evaluations and checkpoints. A member's run looks exactly like a single run with its
 seed (params, tags, metrics, ``best.pt``/``last.pt`` in the single-agent layout), plus the tags
 ``walkers.population`` (K) and ``walkers.population_member`` (its index): `walkers.evaluate`,
-`walkers.collect` and `walkers.compare` treat it as any run, and ``resume=<member run>``
-continues that member alone. The members share the loop, so they stop together: Ctrl-C ends
-every run KILLED, a member whose updates keep failing (``divergence_patience``) ends every run
-FAILED.
+`walkers.collect` and `walkers.compare` treat it as any run; ``resume=<member run>`` continues
+that member alone, ``resume=[<run>,<run>,...]`` the members together again (runs of one
+configuration at the same step; the end of a population run prints that command). The members
+share the loop, so they stop together: Ctrl-C ends every run KILLED, a member whose updates keep
+failing (``divergence_patience``) ends every run FAILED.
 """
 
 from __future__ import annotations
@@ -38,21 +39,23 @@ class PopulationTrainer:
 
     def run(self) -> list[dict[str, float]]:
         agent, trainers = self.agent, self.trainers
-        settings = trainers[0].settings
-        obs = [t.env.reset(seed=t.settings.seed)[0] for t in trainers]
+        settings, progress = trainers[0].settings, trainers[0].progress  # shared by all members
+        # Seeded as a single run is: the first reset by seed, a resumed run's by its episodes.
+        obs = [t.env.reset(seed=t.settings.seed + t.progress.episodes)[0] for t in trainers]
         bar = tqdm(
             total=settings.total_steps,
+            initial=progress.step,
             unit="step",
             disable=not settings.progress,
             dynamic_ncols=True,
             mininterval=1.0,
         )
-        start = time.perf_counter()
+        start_step, start = progress.step, time.perf_counter()
         for t in trainers:
             t.start_clock(start)
         latest: dict[str, torch.Tensor] = {}
         try:
-            for _ in range(settings.total_steps):
+            while progress.step < settings.total_steps:
                 actions = agent.act_population(np.stack(obs), explore=True)
                 transitions = []
                 for i, t in enumerate(trainers):
@@ -67,7 +70,7 @@ class PopulationTrainer:
                         obs[i], _ = t.env.reset()
                 agent.observe_population(transitions)
                 latest.update(agent.update())
-                logging = trainers[0].progress.step % settings.log_every == 0
+                logging = progress.step % settings.log_every == 0
                 for i, t in enumerate(trainers):  # losses are read only when they are logged
                     t.after_step({k: v[i] for k, v in latest.items()} if logging else {}, bar)
         except KeyboardInterrupt:
@@ -76,7 +79,9 @@ class PopulationTrainer:
             raise
         finally:
             bar.close()
-        sps = settings.total_steps / (time.perf_counter() - start)
+        if progress.step == start_step:  # resumed at its budget: nothing ran, no rate
+            return [t.finish(None) for t in trainers]
+        sps = (progress.step - start_step) / (time.perf_counter() - start)
         aggregate = {"perf/population_sps": sps * len(trainers)}
         return [t.finish(sps, aggregate) for t in trainers]
 

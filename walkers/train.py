@@ -2,6 +2,7 @@
 
     python -m walkers.train algo=td3 env=walker2d seed=3 total_steps=300000
     python -m walkers.train resume=<mlflow run id>
+    python -m walkers.train 'resume=[<id>,<id>]'      # a population's members, together again
     python -m walkers.train --help | --cfg job
 
 Builds the env and the agent from the composed config, runs the :class:`~walkers.trainer.Trainer`
@@ -108,9 +109,11 @@ def _override_keys(overrides) -> set[str]:
     return {o.split("=", 1)[0].lstrip("+~") for o in overrides}
 
 
-def _load_resume_checkpoint(client, cfg: DictConfig, overrides) -> tuple[DictConfig, dict]:
+def _load_resume_checkpoint(
+    client, cfg: DictConfig, overrides, run_id: str | None = None
+) -> tuple[DictConfig, dict]:
     """The run's stored config (with the allowed new overrides) and its ``last.pt``."""
-    run_id = str(cfg.resume)
+    run_id = str(cfg.resume) if run_id is None else run_id
     tracking.require_run(client, run_id, cfg.tracking.uri, key="resume")
     path = tracking.download_checkpoint(client, run_id, "last.pt", cfg.work_dir)
     state = checkpoints.load(path)
@@ -124,19 +127,65 @@ def _load_resume_checkpoint(client, cfg: DictConfig, overrides) -> tuple[DictCon
     return stored, state
 
 
+def _load_population_checkpoints(
+    client, cfg: DictConfig, overrides
+) -> tuple[DictConfig, list[tuple[DictConfig, dict]]]:
+    """``resume=[id,...]``: runs of one configuration (a population's members, typically)
+    continued together as one population. Returns the population's config and, per member,
+    its stored config and ``last.pt``."""
+    run_ids = [str(run_id) for run_id in cfg.resume]
+    listed = f"resume=[{','.join(run_ids)}]"
+    if len(run_ids) < 2 or len(set(run_ids)) < len(run_ids):
+        raise ConfigError(
+            f"{listed}: a list resumes two or more different runs together as a "
+            "population; pass a single run id to resume one run"
+        )
+    members = [_load_resume_checkpoint(client, cfg, overrides, run_id) for run_id in run_ids]
+
+    def shared_settings(member_cfg: DictConfig) -> dict:
+        settings = tracking.flatten(OmegaConf.to_container(member_cfg, resolve=True))
+        return {k: v for k, v in settings.items() if k not in ("seed", "resume")}
+
+    (first_cfg, first_state), first = members[0], shared_settings(members[0][0])
+    for run_id, (member_cfg, state) in zip(run_ids[1:], members[1:], strict=True):
+        other = shared_settings(member_cfg)
+        differing = sorted(k for k in first.keys() | other.keys() if first.get(k) != other.get(k))
+        if differing:
+            key = differing[0]
+            raise ConfigError(
+                f"{listed}: runs {run_ids[0]} and {run_id} differ in {key} "
+                f"({first.get(key)!r} vs {other.get(key)!r}); only runs of one configuration "
+                "(seeds aside) continue together: resume the others alone"
+            )
+        if state["trainer"]["step"] != first_state["trainer"]["step"]:
+            raise ConfigError(
+                f"{listed}: run {run_ids[0]} is at step {first_state['trainer']['step']}"
+                f" and run {run_id} at step {state['trainer']['step']}; only runs at the same "
+                "step continue together: resume them one by one"
+            )
+    population = first_cfg.copy()
+    population.population = len(members)
+    population.resume = run_ids
+    return population, members
+
+
 def train(cfg: DictConfig, overrides: list[str] | tuple = ()) -> float:
     """Train as ``cfg`` says; ``overrides`` are the command-line overrides (used by resume)."""
     resume_state = None
     if not cfg.resume:
         validate(cfg)  # before anything is created
     client = tracking.connect(cfg.tracking.uri)
-    if cfg.resume:  # the run's own config, plus the overrides allowed on resume
+    resumed_members = None
+    if OmegaConf.is_list(cfg.resume):  # several runs, continued together as one population
+        cfg, resumed_members = _load_population_checkpoints(client, cfg, overrides)
+        validate(cfg)
+    elif cfg.resume:  # the run's own config, plus the overrides allowed on resume
         cfg, resume_state = _load_resume_checkpoint(client, cfg, overrides)
         validate(cfg)
     if cfg.torch_threads:
         torch.set_num_threads(cfg.torch_threads)
     if cfg.population > 1:
-        return _train_population(cfg, client)
+        return _train_population(cfg, client, resumed_members)
     data = load_dataset(cfg) if is_offline(cfg) else None
     env = None if data is not None else make_env(cfg.env)  # offline agents never step an env
     eval_env = make_env(cfg.env, shaping=False)
@@ -183,10 +232,18 @@ def load_dataset(cfg: DictConfig):
     return data
 
 
-def _train_population(cfg: DictConfig, client) -> float:
-    """``population=K``: K members in one agent and one loop, one MLflow run per member."""
+def _train_population(
+    cfg: DictConfig, client, resumed: list[tuple[DictConfig, dict]] | None = None
+) -> float:
+    """``population=K``: K members in one agent and one loop, one MLflow run per member.
+
+    ``resumed``: per member, the stored config and ``last.pt`` of a run to continue.
+    """
     k = cfg.population
-    members = [_member_config(cfg, i) for i in range(k)]
+    if resumed is None:
+        members = [_member_config(cfg, i) for i in range(k)]
+    else:
+        members = [member for member, _ in resumed]
     envs = [make_env(cfg.env) for _ in members]
     eval_envs = [make_env(cfg.env, shaping=False) for _ in members]
     trackers: list[tracking.Tracker] = []
@@ -197,6 +254,8 @@ def _train_population(cfg: DictConfig, client) -> float:
             for i, member in enumerate(members):
                 tags = {POPULATION_TAG: str(k), MEMBER_TAG: str(i)}
                 trackers.append(_open_run(client, member, extra_tags=tags))
+                if member.resume:  # a reopened run: its place in this population
+                    trackers[-1].set_tags(tags)
             trainers = [
                 Trainer(
                     agent.member_policy(i),
@@ -209,6 +268,10 @@ def _train_population(cfg: DictConfig, client) -> float:
                 )
                 for i, (member, tracker) in enumerate(zip(members, trackers, strict=True))
             ]
+            for trainer, (_, state) in zip(trainers, resumed or [], strict=False):
+                trainer.restore(state)
+            if resumed:
+                log.info("resuming %d runs together at step %d", k, trainers[0].progress.step)
             summaries = PopulationTrainer(agent, trainers).run()
             status = tracking.FINISHED
         except KeyboardInterrupt:
@@ -218,6 +281,9 @@ def _train_population(cfg: DictConfig, client) -> float:
             for tracker in trackers:
                 tracker.end(status)
                 log.info("MLflow run %s ended %s: %s", tracker.run_id, status, tracker.url)
+            if trackers:
+                ids = ",".join(tracker.run_id for tracker in trackers)
+                log.info("continue them together: python -m walkers.train 'resume=[%s]'", ids)
     finally:
         for e in envs + eval_envs:
             e.close()

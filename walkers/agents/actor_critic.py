@@ -76,6 +76,7 @@ class OrnsteinUhlenbeckNoise(GaussianNoise):
 
 
 NOISE_TYPES = {"gaussian": GaussianNoise, "ou": OrnsteinUhlenbeckNoise}
+ADAM_MOMENTS = ("exp_avg", "exp_avg_sq")
 
 
 class ActorCritic(Agent):
@@ -347,31 +348,23 @@ class ActorCritic(Agent):
 
         Networks, targets, Adam moments, counters, RNG, noise, buffer and guard of that member
         only, in the single-agent layout: a member's checkpoint loads into an ordinary agent
-        (``walkers.evaluate``, ``walkers.collect``, or ``resume=`` to continue it alone).
+        (``walkers.evaluate``, ``walkers.collect``, or ``resume=`` to continue it alone), or back
+        into a population (:meth:`load_member_state_dict`).
         """
-        C = self.num_critics
-        critics = slice(i * C, (i + 1) * C)
+        critic_cut = self._critic_slice(i)
 
         def critic_state(module) -> dict:
-            return {k: v[critics].clone() for k, v in module.state_dict().items()}
+            return {k: v[critic_cut].clone() for k, v in module.state_dict().items()}
 
         def optimizer_state(optimizer, cut) -> dict:
             state = optimizer.state_dict()
-            params = state["param_groups"][0]["params"]
-            members = [p for group in optimizer.param_groups for p in group["params"]]
-            for index, param in zip(params, members, strict=True):
-                if index in state["state"]:  # a new dict: state_dict() shares the live one
-                    moments = state["state"][index]
-                    state["state"][index] = moments | {
-                        key: cut(moments[key], param) for key in ("exp_avg", "exp_avg_sq")
-                    }
+            for index, moments in list(state["state"].items()):
+                # a new dict: state_dict() shares the live tensors
+                state["state"][index] = moments | {key: cut(moments[key]) for key in ADAM_MOMENTS}
             return state
 
-        def actor_cut(x, param):  # EnsembleLinear weight (K, in, out) -> Linear (out, in)
-            return x[i].T.contiguous() if x.dim() == 3 and x.shape[1] != 1 else x[i, 0].clone()
-
-        def critic_cut(x, param):
-            return x[critics].clone()
+        def actor_cut(x):  # EnsembleLinear weight (K, in, out) -> Linear (out, in)
+            return x[i].T.contiguous() if x.shape[1] != 1 else x[i, 0].clone()
 
         return {
             "actor": self.actor.member_state(i),
@@ -379,7 +372,7 @@ class ActorCritic(Agent):
             "actor_target": self.actor_target.member_state(i),
             "critic_target": critic_state(self.critic_target),
             "actor_optimizer": optimizer_state(self.actor_optimizer, actor_cut),
-            "critic_optimizer": optimizer_state(self.critic_optimizer, critic_cut),
+            "critic_optimizer": optimizer_state(self.critic_optimizer, lambda x: x[critic_cut]),
             "steps": self.steps,
             "num_updates": self.num_updates,
             "rng": self.rngs[i].bit_generator.state,
@@ -390,6 +383,58 @@ class ActorCritic(Agent):
                 "in_a_row": self.guard.in_a_row[i].item(),
             },
         }
+
+    @torch.no_grad()
+    def load_member_state_dict(self, i: int, state: dict) -> None:
+        """Load a single agent's :meth:`state_dict` into member ``i`` of this population.
+
+        The inverse of :meth:`member_state_dict`: K runs resumed together continue as one
+        population (``resume=[id,id,...]``). Counters are shared, so every member must be at the
+        same update (the caller checks; they are taken from the last member loaded).
+        """
+        critic_cut = self._critic_slice(i)
+        for name in ("actor", "actor_target"):
+            getattr(self, name).load_member_state(i, state[name])
+        for name in ("critic", "critic_target"):
+            for key, value in getattr(self, name).state_dict().items():
+                value[critic_cut] = state[name][key]
+
+        def load_moments(optimizer, member: dict, put) -> None:
+            for index, param in self._indexed_params(optimizer):
+                if index not in member["state"]:
+                    continue  # the member never stepped this parameter
+                saved, live = member["state"][index], optimizer.state[param]
+                if not live:  # a fresh optimizer: create its state as its first step would
+                    live["step"] = saved["step"].clone().to(param.device)
+                    live |= {key: torch.zeros_like(param) for key in ADAM_MOMENTS}
+                for key in ADAM_MOMENTS:
+                    put(live[key], saved[key].to(param.device))
+                live["step"].copy_(saved["step"])
+
+        def put_actor(live, saved):  # Linear (out, in) -> EnsembleLinear member (in, out)
+            live[i] = saved.T if saved.dim() == 2 else saved
+
+        def put_critic(live, saved):
+            live[critic_cut] = saved
+
+        load_moments(self.actor_optimizer, state["actor_optimizer"], put_actor)
+        load_moments(self.critic_optimizer, state["critic_optimizer"], put_critic)
+        self.steps, self.num_updates = state["steps"], state["num_updates"]
+        self.rngs[i].bit_generator.state = state["rng"]
+        self.noises[i].load_state_dict(state["noise"])
+        self.buffers[i].load_state_dict(state["buffer"])
+        self.guard.skipped[i] = state["guard"]["skipped"]
+        self.guard.in_a_row[i] = state["guard"]["in_a_row"]
+
+    def _critic_slice(self, i: int) -> slice:
+        """Member ``i``'s critics in the ``K * C`` critic ensemble."""
+        return slice(i * self.num_critics, (i + 1) * self.num_critics)
+
+    @staticmethod
+    def _indexed_params(optimizer) -> list[tuple[int, torch.Tensor]]:
+        """``(index in optimizer.state_dict(), parameter)`` pairs."""
+        params = [p for group in optimizer.param_groups for p in group["params"]]
+        return list(enumerate(params))
 
 
 class MemberAgent(Agent):
@@ -417,4 +462,4 @@ class MemberAgent(Agent):
         return self.population.member_state_dict(self.index, with_buffer)
 
     def load_state_dict(self, state: dict) -> None:
-        raise NotImplementedError("resume a member with resume=<its run id>: it continues alone")
+        self.population.load_member_state_dict(self.index, state)

@@ -42,3 +42,46 @@ def test_sigterm_saves_a_checkpoint_and_ends_killed(store):
     assert resumed.returncode == 0, resumed.stderr[-2000:]
     (run,) = all_runs(store["client"])
     assert run.info.status == "FINISHED"
+
+
+def test_a_terminated_population_resumes_together(store):
+    args = [
+        "env=pendulum",
+        "population=2",
+        "total_steps=100000",
+        "eval_every=500",
+        "eval_episodes=1",
+        "checkpoint_every=100000",
+        "algo.learning_starts=100",
+        "algo.hidden_sizes=[16,16]",
+        "progress=false",
+        *store["overrides"],
+    ]
+    proc = spawn_cli(args, cwd=store["path"])
+    try:
+        wait_for_uploaded_checkpoint(proc, store["path"], "best.pt")
+        proc.send_signal(signal.SIGTERM)
+        stdout, stderr = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode == 130, stderr[-2000:]
+    runs = sorted(all_runs(store["client"]), key=lambda r: r.data.params["seed"])  # member order
+    assert [r.info.status for r in runs] == ["KILLED", "KILLED"]
+    steps = {
+        checkpoints.load(
+            store["client"].download_artifacts(
+                r.info.run_id, "checkpoints/last.pt", str(store["path"] / r.info.run_id)
+            )
+        )["trainer"]["step"]
+        for r in runs
+    }
+    assert len(steps) == 1  # both members stopped at the same step
+    (step,) = steps
+    ids = ",".join(r.info.run_id for r in runs)
+    assert f"resume=[{ids}]" in stdout  # the command that continues them is printed
+
+    resumed = run_cli(
+        [f"resume=[{ids}]", f"total_steps={step + 200}", *store["overrides"]], cwd=store["path"]
+    )
+    assert resumed.returncode == 0, resumed.stderr[-2000:]
+    assert [r.info.status for r in all_runs(store["client"])] == ["FINISHED", "FINISHED"]

@@ -57,24 +57,27 @@ class PopulationTrainer:
         try:
             while progress.step < settings.total_steps:
                 actions = agent.act_population(np.stack(obs), explore=True)
-                transitions = []
-                for i, t in enumerate(trainers):
-                    next_obs, reward, terminated, truncated, info = t.env.step(actions[i])
-                    transitions.append(
+                results = [t.env.step(action) for t, action in zip(trainers, actions, strict=True)]
+                agent.observe_population(
+                    [
                         Transition(obs[i], actions[i], reward, next_obs, terminated, truncated)
-                    )
-                    obs[i] = next_obs
+                        for i, (next_obs, reward, terminated, truncated, _) in enumerate(results)
+                    ]
+                )
+                for i, (t, result) in enumerate(zip(trainers, results, strict=True)):
+                    next_obs, _, terminated, truncated, info = result
                     t.progress.step += 1
+                    obs[i] = next_obs
                     if terminated or truncated:
                         t.record_episode(info)
                         obs[i], _ = t.env.reset()
-                agent.observe_population(transitions)
                 latest.update(agent.update())
                 logging = progress.step % settings.log_every == 0
                 for i, t in enumerate(trainers):  # losses are read only when they are logged
                     t.after_step({k: v[i] for k, v in latest.items()} if logging else {}, bar)
         except KeyboardInterrupt:
-            for t in trainers:
+            for t in trainers:  # members checkpoint at one step, so they resume together
+                t.progress.step = agent.steps
                 t.checkpoint_and_flush()
             raise
         finally:

@@ -157,12 +157,13 @@ def _load_population_checkpoints(
                 f"({first.get(key)!r} vs {other.get(key)!r}); only runs of one configuration "
                 "(seeds aside) continue together: resume the others alone"
             )
-        if state["trainer"]["step"] != first_state["trainer"]["step"]:
-            raise ConfigError(
-                f"{listed}: run {run_ids[0]} is at step {first_state['trainer']['step']}"
-                f" and run {run_id} at step {state['trainer']['step']}; only runs at the same "
-                "step continue together: resume them one by one"
-            )
+        for counter, of in (("step", "trainer"), ("num_updates", "agent")):
+            if state[of][counter] != first_state[of][counter]:
+                raise ConfigError(
+                    f"{listed}: run {run_ids[0]} is at {counter} {first_state[of][counter]} and "
+                    f"run {run_id} at {counter} {state[of][counter]}; only runs at the same step "
+                    "and update continue together: resume them one by one"
+                )
     population = first_cfg.copy()
     population.population = len(members)
     population.resume = run_ids

@@ -290,10 +290,10 @@ class ActorCritic(Agent):
         self.critic_optimizer.zero_grad(set_to_none=True)
         member_critic_loss.sum().backward()
         # NaN/inf guard without a host sync (see _skip_bad_members).
-        bad = NonFiniteGuard.bad_members(member_critic_loss)
-        self._skip_bad_members(self.critic_optimizer, bad, copies=self.num_critics)
+        critic_bad = NonFiniteGuard.bad_members(member_critic_loss)
+        self._skip_bad_members(self.critic_optimizer, critic_bad, copies=self.num_critics)
         self.critic_optimizer.step()
-        self.guard.record(self._per_member(bad))
+        self.guard.record(self._per_member(critic_bad))
         metrics = {
             "loss/critic": self._per_member(member_critic_loss),
             "train/q_mean": self._per_member(q_mean),
@@ -306,7 +306,9 @@ class ActorCritic(Agent):
             self.critic.requires_grad_(True)
             self.actor_optimizer.zero_grad(set_to_none=True)
             member_actor_loss.sum().backward()
-            bad = NonFiniteGuard.bad_members(member_critic_loss, member_actor_loss)
+            # critic_bad, not the critic loss: under CUDA graphs the actor-loss run has already
+            # reclaimed the critic-loss run's outputs.
+            bad = torch.maximum(critic_bad, NonFiniteGuard.bad_members(member_actor_loss))
             self._skip_bad_members(self.actor_optimizer, bad, copies=1)
             self.actor_optimizer.step()
             soft_update(self.critic_target, self.critic, self.tau)
@@ -389,8 +391,9 @@ class ActorCritic(Agent):
         """Load a single agent's :meth:`state_dict` into member ``i`` of this population.
 
         The inverse of :meth:`member_state_dict`: K runs resumed together continue as one
-        population (``resume=[id,id,...]``). Counters are shared, so every member must be at the
-        same update (the caller checks; they are taken from the last member loaded).
+        population (``resume=[id,id,...]``). Counters (env steps, updates, Adam's step count)
+        are shared, so every member must be at the same update (the caller checks); they are
+        taken from the last member loaded.
         """
         critic_cut = self._critic_slice(i)
         for name in ("actor", "actor_target"):
@@ -423,8 +426,8 @@ class ActorCritic(Agent):
         self.rngs[i].bit_generator.state = state["rng"]
         self.noises[i].load_state_dict(state["noise"])
         self.buffers[i].load_state_dict(state["buffer"])
-        self.guard.skipped[i] = state["guard"]["skipped"]
-        self.guard.in_a_row[i] = state["guard"]["in_a_row"]
+        guard = state.get("guard", {"skipped": 0, "in_a_row": 0})  # older checkpoints: none
+        self.guard.skipped[i], self.guard.in_a_row[i] = guard["skipped"], guard["in_a_row"]
 
     def _critic_slice(self, i: int) -> slice:
         """Member ``i``'s critics in the ``K * C`` critic ensemble."""

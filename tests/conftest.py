@@ -116,6 +116,23 @@ def wait_for_uploaded_checkpoint(
         time.sleep(0.2)
 
 
+def signal_once_checkpointed(
+    args: list[str], store_path: Path, checkpoint: str, sig: int
+) -> tuple[int, str, str]:
+    """Start a training CLI, send it ``sig`` once it has uploaded ``checkpoint``, wait for it.
+
+    Returns ``(exit code, stdout, stderr)``.
+    """
+    proc = spawn_cli(args, cwd=store_path)
+    try:
+        wait_for_uploaded_checkpoint(proc, store_path, checkpoint)  # it is training
+        proc.send_signal(sig)
+        stdout, stderr = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    return proc.returncode, stdout, stderr
+
+
 def all_runs(client: MlflowClient) -> list:
     """Every run in every experiment of a store (empty for a store never written to)."""
     return client.search_runs([e.experiment_id for e in client.search_experiments()])

@@ -7,7 +7,7 @@ import signal
 import pytest
 import torch
 
-from tests.conftest import all_runs, run_cli, spawn_cli, wait_for_uploaded_checkpoint
+from tests.conftest import all_runs, run_cli, signal_once_checkpointed
 from walkers import checkpoints
 from walkers.errors import CheckpointError
 
@@ -45,13 +45,7 @@ def test_kill_9_then_resume_finishes_at_the_right_step(store):
         "progress=false",
         *store["overrides"],
     ]
-    proc = spawn_cli(args, cwd=store["path"])
-    try:
-        wait_for_uploaded_checkpoint(proc, store["path"], "last.pt")
-        proc.send_signal(signal.SIGKILL)  # no chance to clean up
-        proc.wait(timeout=30)
-    finally:
-        proc.kill()
+    signal_once_checkpointed(args, store["path"], "last.pt", signal.SIGKILL)  # no clean-up
     (run,) = all_runs(store["client"])
     resumed = run_cli([f"resume={run.info.run_id}", *store["overrides"]], cwd=store["path"])
     assert resumed.returncode == 0, resumed.stderr[-2000:]

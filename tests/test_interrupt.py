@@ -4,29 +4,25 @@ from __future__ import annotations
 
 import signal
 
-from tests.conftest import all_runs, run_cli, spawn_cli, wait_for_uploaded_checkpoint
+from tests.conftest import all_runs, run_cli, signal_once_checkpointed
 from walkers import checkpoints
+
+#: A run far longer than any test waits: it is stopped by a signal after its first evaluation.
+LONG_RUN = [
+    "env=pendulum",
+    "total_steps=100000",
+    "eval_every=500",
+    "eval_episodes=1",
+    "checkpoint_every=100000",
+    "algo.learning_starts=100",
+    "progress=false",
+]
 
 
 def test_sigterm_saves_a_checkpoint_and_ends_killed(store):
-    args = [
-        "env=pendulum",
-        "total_steps=100000",
-        "eval_every=500",
-        "eval_episodes=1",
-        "checkpoint_every=100000",
-        "algo.learning_starts=100",
-        "progress=false",
-        *store["overrides"],
-    ]
-    proc = spawn_cli(args, cwd=store["path"])
-    try:
-        wait_for_uploaded_checkpoint(proc, store["path"], "best.pt")  # it is training
-        proc.send_signal(signal.SIGTERM)
-        _, stderr = proc.communicate(timeout=60)
-    finally:
-        proc.kill()
-    assert proc.returncode == 130, stderr[-2000:]
+    args = [*LONG_RUN, *store["overrides"]]
+    code, _, stderr = signal_once_checkpointed(args, store["path"], "best.pt", signal.SIGTERM)
+    assert code == 130, stderr[-2000:]
     (run,) = all_runs(store["client"])
     assert run.info.status == "KILLED"
     path = store["client"].download_artifacts(
@@ -45,26 +41,9 @@ def test_sigterm_saves_a_checkpoint_and_ends_killed(store):
 
 
 def test_a_terminated_population_resumes_together(store):
-    args = [
-        "env=pendulum",
-        "population=2",
-        "total_steps=100000",
-        "eval_every=500",
-        "eval_episodes=1",
-        "checkpoint_every=100000",
-        "algo.learning_starts=100",
-        "algo.hidden_sizes=[16,16]",
-        "progress=false",
-        *store["overrides"],
-    ]
-    proc = spawn_cli(args, cwd=store["path"])
-    try:
-        wait_for_uploaded_checkpoint(proc, store["path"], "best.pt")
-        proc.send_signal(signal.SIGTERM)
-        stdout, stderr = proc.communicate(timeout=60)
-    finally:
-        proc.kill()
-    assert proc.returncode == 130, stderr[-2000:]
+    args = [*LONG_RUN, "population=2", "algo.hidden_sizes=[16,16]", *store["overrides"]]
+    code, stdout, stderr = signal_once_checkpointed(args, store["path"], "best.pt", signal.SIGTERM)
+    assert code == 130, stderr[-2000:]
     runs = sorted(all_runs(store["client"]), key=lambda r: r.data.params["seed"])  # member order
     assert [r.info.status for r in runs] == ["KILLED", "KILLED"]
     steps = {

@@ -5,7 +5,10 @@
 Walker2d-v5, reference hyperparameters for all (256-256, batch 256, one gradient step per env
 step, lr 3e-4, gamma 0.99, tau 0.005). Each contender first runs past its warm-up untimed, then
 the contenders take turns, ``--steps`` env steps a round, so machine noise hits all alike. The
-table gives the median env steps/s and the ratio to SB3's TD3 (above 1: faster). Then: the TD3
+table gives the median env steps/s and the ratio to SB3's TD3 (above 1: faster). Seeds trained
+together count in aggregate: ``K=`` rows are one process with a population of K (2 threads),
+``procs x`` rows are one process per core with one thread each, as a joblib multirun runs them.
+Then: the TD3
 update alone, an estimate of its FLOPs, this machine's fp32 matmul rate, and the memory of a full
 1M-transition replay buffer. SB3 is a benchmark-only dependency (``pip install -e '.[bench]'``);
 without it the SB3 rows are skipped. A benchmark, not a test: nothing here asserts on time.
@@ -14,6 +17,7 @@ without it the SB3 rows are skipped. A benchmark, not a test: nothing here asser
 from __future__ import annotations
 
 import argparse
+import multiprocessing as mp
 import time
 
 import gymnasium as gym
@@ -74,6 +78,39 @@ class PopulationLoop:
             agent.update()
 
 
+class ParallelLoops:
+    """``n`` processes with one torch thread each, each running its own loop (a TD3 seed, or a
+    population of ``k``): what a multirun with ``hydra/launcher=joblib`` does with the cores."""
+
+    def __init__(self, n: int, k: int = 1, **kwargs):
+        ctx = mp.get_context("spawn")
+        self.pipes, self.procs = [], []
+        for _ in range(n):
+            parent, child = ctx.Pipe()
+            proc = ctx.Process(target=_loop_worker, args=(child, k, kwargs), daemon=True)
+            proc.start()
+            self.pipes.append(parent)
+            self.procs.append(proc)
+        self.env_steps_per_step = n * k
+
+    def run(self, steps: int) -> None:
+        for pipe in self.pipes:
+            pipe.send(steps)
+        for pipe in self.pipes:
+            pipe.recv()
+
+
+def _loop_worker(pipe, k: int, kwargs: dict) -> None:
+    torch.set_num_threads(1)
+    loop = WalkersLoop(TD3, **kwargs) if k == 1 else PopulationLoop(k, **kwargs)
+    try:
+        while True:
+            loop.run(pipe.recv())
+            pipe.send("done")
+    except EOFError:  # the benchmark is over
+        pass
+
+
 class SB3Loop:
     """Stable-Baselines3's own ``learn`` loop, continued in chunks."""
 
@@ -113,6 +150,11 @@ def contenders() -> dict:
         # population=K: the aggregate env steps/s of K seeds trained together
         "walkers TD3 K=2": lambda: PopulationLoop(2, hidden_sizes=[HIDDEN, HIDDEN], **common),
         "walkers TD3 K=4": lambda: PopulationLoop(4, hidden_sizes=[HIDDEN, HIDDEN], **common),
+        # the same cores as processes: one seed (or a population of 2) per core, 1 thread each
+        "2 procs x TD3": lambda: ParallelLoops(2, hidden_sizes=[HIDDEN, HIDDEN], **common),
+        "2 procs x TD3 K=2": lambda: ParallelLoops(
+            2, k=2, hidden_sizes=[HIDDEN, HIDDEN], **common
+        ),
     }
     try:
         import stable_baselines3  # noqa: F401

@@ -8,10 +8,10 @@ the contenders take turns, ``--steps`` env steps a round, so machine noise hits 
 table gives the median env steps/s and the ratio to SB3's TD3 (above 1: faster). Seeds trained
 together count in aggregate: ``K=`` rows are one process with a population of K (2 threads),
 ``procs x`` rows are one process per core with one thread each, as a joblib multirun runs them.
-Then: the TD3
-update alone, an estimate of its FLOPs, this machine's fp32 matmul rate, and the memory of a full
-1M-transition replay buffer. SB3 is a benchmark-only dependency (``pip install -e '.[bench]'``);
-without it the SB3 rows are skipped. A benchmark, not a test: nothing here asserts on time.
+Then: the TD3 update alone, an estimate of its FLOPs, this machine's fp32 matmul rate, and the
+memory of a full 1M-transition replay buffer. SB3 is a benchmark-only dependency
+(``pip install -e '.[bench]'``); without it the SB3 rows are skipped. A benchmark, not a test:
+nothing here asserts on time.
 """
 
 from __future__ import annotations
@@ -84,13 +84,11 @@ class ParallelLoops:
 
     def __init__(self, n: int, k: int = 1, **kwargs):
         ctx = mp.get_context("spawn")
-        self.pipes, self.procs = [], []
+        self.pipes = []
         for _ in range(n):
             parent, child = ctx.Pipe()
-            proc = ctx.Process(target=_loop_worker, args=(child, k, kwargs), daemon=True)
-            proc.start()
+            ctx.Process(target=_loop_worker, args=(child, k, kwargs), daemon=True).start()
             self.pipes.append(parent)
-            self.procs.append(proc)
         self.env_steps_per_step = n * k
 
     def run(self, steps: int) -> None:

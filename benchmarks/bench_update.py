@@ -139,6 +139,13 @@ ELEMENTWISE_OPS = {
     "aten::logical_and", "aten::bitwise_and_", "aten::bitwise_not", "aten::div",
 }  # fmt: skip
 SAMPLING_OPS = {"aten::index", "aten::randint", "aten::random_"}
+OP_KINDS = {
+    "matmuls": MATMUL_OPS,
+    "Adam, target updates": OPTIMIZER_OPS,
+    "elementwise": ELEMENTWISE_OPS,
+    "batch sampling": SAMPLING_OPS,
+}
+OTHER_OPS = "copies, views, allocations, other"
 
 
 def breakdown(update, n: int = 100) -> dict[str, float]:
@@ -150,22 +157,11 @@ def breakdown(update, n: int = 100) -> dict[str, float]:
         for _ in range(n):
             update()
         wall = (time.perf_counter() - start) / n * 1e3
-    kinds = {"matmuls": 0.0, "Adam, target updates": 0.0, "elementwise": 0.0}
-    kinds |= {"batch sampling": 0.0, "copies, views, allocations, other": 0.0}
+    kinds = dict.fromkeys([*OP_KINDS, OTHER_OPS], 0.0)
     for event in prof.key_averages():
-        ms = event.self_cpu_time_total / 1e3 / n
-        if not event.key.startswith("aten::"):
-            continue
-        if event.key in MATMUL_OPS:
-            kinds["matmuls"] += ms
-        elif event.key in OPTIMIZER_OPS:
-            kinds["Adam, target updates"] += ms
-        elif event.key in ELEMENTWISE_OPS:
-            kinds["elementwise"] += ms
-        elif event.key in SAMPLING_OPS:
-            kinds["batch sampling"] += ms
-        else:
-            kinds["copies, views, allocations, other"] += ms
+        if event.key.startswith("aten::"):
+            kind = next((k for k, ops in OP_KINDS.items() if event.key in ops), OTHER_OPS)
+            kinds[kind] += event.self_cpu_time_total / 1e3 / n
     # What no op accounts for; the profiler's own cost lands here too.
     kinds["Python, autograd, dispatch, profiler"] = wall - sum(kinds.values())
     return kinds | {"update (profiled)": wall}

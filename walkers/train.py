@@ -255,8 +255,6 @@ def _train_population(
             for i, member in enumerate(members):
                 tags = {POPULATION_TAG: str(k), MEMBER_TAG: str(i)}
                 trackers.append(_open_run(client, member, extra_tags=tags))
-                if member.resume:  # a reopened run: its place in this population
-                    trackers[-1].set_tags(tags)
             trainers = [
                 Trainer(
                     agent.member_policy(i),
@@ -306,10 +304,16 @@ def _member_config(cfg: DictConfig, i: int) -> DictConfig:
 def _open_run(
     client, cfg: DictConfig, data=None, extra_tags: dict | None = None
 ) -> tracking.Tracker:
-    """Reopen the resumed run, or create a new one with the config as params and tags."""
+    """Reopen the resumed run, or create a new one with the config as params and tags.
+
+    ``extra_tags`` are set either way (a resumed population member: its place in the population).
+    """
     spool = Path(cfg.work_dir) / "spool"
     if cfg.resume:
-        return tracking.Tracker.reopen(client, cfg.resume, spool)
+        tracker = tracking.Tracker.reopen(client, cfg.resume, spool)
+        if extra_tags:
+            tracker.set_tags(extra_tags)
+        return tracker
     algo, env_id, commit = cfg.algo.name, cfg.env.id, git_commit()
     tags = {
         "algo": algo,

@@ -403,7 +403,8 @@ class ActorCritic(Agent):
                 value[critic_cut] = state[name][key]
 
         def load_moments(optimizer, member: dict, put) -> None:
-            for index, param in self._indexed_params(optimizer):
+            params = [p for group in optimizer.param_groups for p in group["params"]]
+            for index, param in enumerate(params):  # the indices of optimizer.state_dict()
                 if index not in member["state"]:
                     continue  # the member never stepped this parameter
                 saved, live = member["state"][index], optimizer.state[param]
@@ -432,12 +433,6 @@ class ActorCritic(Agent):
     def _critic_slice(self, i: int) -> slice:
         """Member ``i``'s critics in the ``K * C`` critic ensemble."""
         return slice(i * self.num_critics, (i + 1) * self.num_critics)
-
-    @staticmethod
-    def _indexed_params(optimizer) -> list[tuple[int, torch.Tensor]]:
-        """``(index in optimizer.state_dict(), parameter)`` pairs."""
-        params = [p for group in optimizer.param_groups for p in group["params"]]
-        return list(enumerate(params))
 
 
 class MemberAgent(Agent):

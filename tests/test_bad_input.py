@@ -28,6 +28,8 @@ CASES = [
     (["resume=0123456789abcdef"], ["resume='0123456789abcdef'", "not a run"]),
     (["tracking.uri=nosuchscheme://x"], ["tracking.uri='nosuchscheme://x'", "sqlite"]),
     (["algo.compile=yes"], ["algo.compile='yes'", "true or false"]),
+    (["resume="], ["resume=''", "empty", "resume=<run id>"]),  # resume=$RUN_ID, variable unset
+    (["resume=[]"], ["resume=[]", "empty"]),
 ]
 
 
@@ -44,7 +46,7 @@ def test_bad_value_is_rejected_before_any_run(store, overrides, expected):
         assert all_runs(store["client"]) == []
 
 
-@pytest.mark.parametrize("case", [0, 10, 14], ids=lambda i: " ".join(CASES[i][0]))
+@pytest.mark.parametrize("case", [0, 10, 14, 17], ids=lambda i: " ".join(CASES[i][0]))
 def test_cli_prints_one_line_and_exits_2(store, case):
     overrides, expected = CASES[case]
     result = run_cli(["env=pendulum", *TINY, *store["overrides"], *overrides], cwd=store["path"])

@@ -22,7 +22,7 @@ from walkers.cli import exit_on_bad_overrides, or_exit
 from walkers.envs import make_env
 from walkers.errors import ConfigError
 from walkers.rollout import record_episodes
-from walkers.trainer import EVAL_SEED_OFFSET
+from walkers.seeding import eval_start_seeds
 from walkers.video import write_videos
 
 log = logging.getLogger("walkers")
@@ -77,10 +77,13 @@ def evaluate(cfg: DictConfig) -> dict:
                     f"({run_cfg.algo.name}) is not return-conditioned (only dt is)"
                 )
             agent.target_return = float(cfg.target_return)
-        seed = cfg.seed if cfg.seed is not None else run_cfg.seed + EVAL_SEED_OFFSET
+        seed = cfg.seed if cfg.seed is not None else run_cfg.seed
         record = cfg.video and cfg.render == "rgb_array"
         returns, frames, fps = record_episodes(
-            agent, env, cfg.episodes, seed, render_episodes=cfg.video_episodes if record else 0
+            agent,
+            env,
+            eval_start_seeds(seed, cfg.episodes),
+            render_episodes=cfg.video_episodes if record else 0,
         )
     finally:
         env.close()

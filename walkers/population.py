@@ -40,8 +40,7 @@ class PopulationTrainer:
     def run(self) -> list[dict[str, float]]:
         agent, trainers = self.agent, self.trainers
         settings, progress = trainers[0].settings, trainers[0].progress  # shared by all members
-        # Seeded as a single run is: the first reset by seed, a resumed run's by its episodes.
-        obs = [t.env.reset(seed=t.settings.seed + t.progress.episodes)[0] for t in trainers]
+        obs = [t.first_reset()[0] for t in trainers]  # each seeded as a single run is
         bar = tqdm(
             total=settings.total_steps,
             initial=progress.step,

@@ -32,7 +32,13 @@ from walkers.cli import exit_on_bad_overrides
 from walkers.envs import env_spaces, make_env
 from walkers.errors import CheckpointError, ConfigError
 from walkers.population import MEMBER_TAG, POPULATION_TAG, PopulationTrainer
-from walkers.trainer import OfflineTrainer, Trainer, TrainerSettings, TrainingDiverged
+from walkers.trainer import (
+    RESUME_DIR,
+    OfflineTrainer,
+    Trainer,
+    TrainerSettings,
+    TrainingDiverged,
+)
 from walkers.trial import PRUNED_TAG, TrialReporter
 from walkers.validate import is_offline, validate
 
@@ -112,11 +118,10 @@ def _override_keys(overrides) -> set[str]:
 def _load_resume_checkpoint(
     client, cfg: DictConfig, overrides, run_id: str | None = None
 ) -> tuple[DictConfig, dict]:
-    """The run's stored config (with the allowed new overrides) and its ``last.pt``."""
+    """The run's stored config (with the allowed new overrides) and its last checkpoint."""
     run_id = str(cfg.resume) if run_id is None else run_id
     tracking.require_run(client, run_id, cfg.tracking.uri, key="resume")
-    path = tracking.download_checkpoint(client, run_id, "last.pt", cfg.work_dir)
-    state = checkpoints.load(path)
+    state = _last_checkpoint(client, run_id, cfg.work_dir)
     stored = OmegaConf.create(state["config"])
     given = _override_keys(overrides)
     for key in RESUME_OVERRIDABLE:
@@ -125,6 +130,31 @@ def _load_resume_checkpoint(
     stored.tracking = cfg.tracking
     stored.resume = run_id
     return stored, state
+
+
+def _last_checkpoint(client, run_id: str, work_dir) -> dict:
+    """A run's ``last.pt``: the local resume copy (replay buffer included) where this machine
+    trained the run and MLflow's is not newer, else the one uploaded to MLflow."""
+    local = run_dir(work_dir, run_id) / RESUME_DIR / "last.pt"
+    try:
+        uploaded = tracking.download_checkpoint(client, run_id, "last.pt", work_dir)
+    except CheckpointError:  # never uploaded (e.g. the store was down): the local copy will do
+        if not local.is_file():
+            raise
+        uploaded = None
+    uploaded = checkpoints.load(uploaded) if uploaded is not None else None  # damaged: an error
+    if local.is_file():
+        whole = checkpoints.load(local)
+        if uploaded is None or whole["trainer"]["step"] >= uploaded["trainer"]["step"]:
+            log.info("resuming from %s (with its replay buffer, if the agent has one)", local)
+            return whole
+        log.warning(
+            "%s is at step %d, MLflow's last.pt at step %d: resuming from MLflow's",
+            local,
+            whole["trainer"]["step"],
+            uploaded["trainer"]["step"],
+        )
+    return uploaded
 
 
 def _load_population_checkpoints(
@@ -173,8 +203,10 @@ def _load_population_checkpoints(
 def train(cfg: DictConfig, overrides: list[str] | tuple = ()) -> float:
     """Train as ``cfg`` says; ``overrides`` are the command-line overrides (used by resume)."""
     resume_state = None
+    _check_resume_given(cfg.resume)
     if not cfg.resume:
         validate(cfg)  # before anything is created
+        warn_short_warmup(cfg)
     client = tracking.connect(cfg.tracking.uri)
     resumed_members = None
     if OmegaConf.is_list(cfg.resume):  # several runs, continued together as one population
@@ -211,6 +243,8 @@ def train(cfg: DictConfig, overrides: list[str] | tuple = ()) -> float:
             tracker.end(status)
             log.info("MLflow run %s ended %s", tracker.run_id, status)
             log.info("open it: `make ui`, then %s", tracker.url)
+            if status == tracking.KILLED:
+                log.info("continue it: python -m walkers.train resume=%s", tracker.run_id)
     finally:
         for e in (env, eval_env, video_env):
             if e is not None:
@@ -218,6 +252,34 @@ def train(cfg: DictConfig, overrides: list[str] | tuple = ()) -> float:
     value = summary.get(cfg.optimized_metric, float("nan"))
     log.info("%s = %s", cfg.optimized_metric, value)
     return value
+
+
+def _check_resume_given(resume) -> None:
+    """``resume=`` with nothing after it (``resume=$RUN_ID`` with the variable unset) is a
+    mistake, never a request for a fresh run."""
+    empty = resume is not None and (
+        (isinstance(resume, str) and not resume.strip())
+        or (OmegaConf.is_list(resume) and len(resume) == 0)
+    )
+    if empty:
+        raise ConfigError(
+            f"resume={resume!r} is empty: pass the MLflow run id to continue (resume=<run id>, "
+            "or resume=[<id>,<id>] for a population), or leave resume out to start a new run"
+        )
+
+
+def warn_short_warmup(cfg: DictConfig) -> None:
+    """A learning-rate warm-up longer than the run never reaches ``algo.lr`` (algo=dt)."""
+    warmup = OmegaConf.select(cfg, "algo.warmup_steps")
+    if warmup and warmup > cfg.total_steps:
+        log.warning(
+            "algo.warmup_steps=%d is more than total_steps=%d: the learning rate ends at %.0f%% "
+            "of algo.lr=%g; lower algo.warmup_steps (e.g. to total_steps / 10)",
+            warmup,
+            cfg.total_steps,
+            100 * cfg.total_steps / warmup,
+            cfg.algo.lr,
+        )
 
 
 def load_dataset(cfg: DictConfig):
@@ -262,7 +324,7 @@ def _train_population(
                     eval_envs[i],
                     tracker,
                     trainer_settings(member),
-                    checkpoint_dir=_run_dir(member, tracker) / "checkpoints",
+                    checkpoint_dir=_prepare_run_dir(member, tracker) / "checkpoints",
                     checkpoint_extra={"config": OmegaConf.to_container(member, resolve=True)},
                 )
                 for i, (member, tracker) in enumerate(zip(members, trackers, strict=True))
@@ -345,14 +407,19 @@ def _open_run(
     return tracker
 
 
-def _run_dir(cfg: DictConfig, tracker: tracking.Tracker) -> Path:
+def run_dir(work_dir, run_id: str) -> Path:
+    """A run's local folder: its checkpoints before upload, its resume copy, downloads."""
+    return Path(work_dir) / "runs" / run_id
+
+
+def _prepare_run_dir(cfg: DictConfig, tracker: tracking.Tracker) -> Path:
     """The run's local folder, with its ``config.yaml`` written and logged."""
-    run_dir = Path(cfg.work_dir) / "runs" / tracker.run_id
-    config_yaml = run_dir / "config.yaml"
+    folder = run_dir(cfg.work_dir, tracker.run_id)
+    config_yaml = folder / "config.yaml"
     config_yaml.parent.mkdir(parents=True, exist_ok=True)
     config_yaml.write_text(OmegaConf.to_yaml(cfg, resolve=True))
     tracker.log_artifact(config_yaml)
-    return run_dir
+    return folder
 
 
 def trainer_settings(cfg: DictConfig) -> TrainerSettings:
@@ -387,7 +454,7 @@ def _train_in_run(
     cfg, tracker, agent, env, eval_env, video_env, resume_state, data=None
 ) -> dict[str, float]:
     reporter = TrialReporter(cfg.sweep) if cfg.sweep.trial_id is not None else None
-    run_dir = _run_dir(cfg, tracker)
+    folder = _prepare_run_dir(cfg, tracker)
     settings = trainer_settings(cfg)
     offline = {"normalize": data.normalized} if data is not None else {}
     trainer = (OfflineTrainer if data is not None else Trainer)(
@@ -396,7 +463,7 @@ def _train_in_run(
         eval_env,
         tracker,
         settings,
-        checkpoint_dir=run_dir / "checkpoints",
+        checkpoint_dir=folder / "checkpoints",
         checkpoint_extra={"config": OmegaConf.to_container(cfg, resolve=True)},
         video_env=video_env,
         on_evaluation=reporter,

@@ -24,11 +24,15 @@ from walkers import checkpoints
 from walkers.agents.base import Agent, Transition
 from walkers.agents.health import SKIPPED_IN_A_ROW
 from walkers.rollout import record_episodes, run_episodes
+from walkers.seeding import env_rng_state, eval_start_seeds, first_training_reset, restore_env_rng
 from walkers.stats import run_summary
 from walkers.tracking import ENV_STEPS, GRADIENT_STEPS, Tracker
 from walkers.video import write_gif
 
-EVAL_SEED_OFFSET = 10_000
+#: Where a run keeps its resume checkpoint on the machine that trains it: ``last.pt`` with the
+#: replay buffer (exactly what a resume on this machine needs), beside ``checkpoints/``, whose
+#: files are uploaded to MLflow (lighter: no buffer unless ``save_buffer=true``).
+RESUME_DIR = "resume"
 
 
 class TrainingDiverged(RuntimeError):
@@ -93,6 +97,8 @@ class Trainer:
         self.stopped_early = False
         self.last_checkpoint_step: int | None = None
         self.progress = Progress()
+        self._env_rng: dict | None = None  # a resumed run's training-env RNG, until its reset
+        self.eval_start_seeds = eval_start_seeds(settings.seed, settings.eval_episodes)
 
     # --- checkpoints --------------------------------------------------------------------------
     def restore(self, state: dict) -> None:
@@ -101,16 +107,35 @@ class Trainer:
         self.progress = Progress(**state["trainer"])
         self.last_checkpoint_step = self.progress.step
         torch.set_rng_state(state["torch_rng"])
+        self._env_rng = state.get("env_rng")
+        if notes := self.agent.resume_notes():  # e.g. a replay buffer that had to be refilled
+            self.tracker.set_tags(notes)
+
+    @property
+    def resume_checkpoint(self) -> Path:
+        """``last.pt`` with everything a resume needs (the replay buffer included), kept locally."""
+        return self.checkpoint_dir.parent / RESUME_DIR / "last.pt"
 
     def save_checkpoint(self, name: str = "last.pt") -> Path:
-        with_buffer = self.settings.save_buffer and name == "last.pt"
+        """Write ``name`` and upload it; keep ``last.pt`` whole as :attr:`resume_checkpoint` too.
+
+        The uploaded ``last.pt`` holds the replay buffer only with ``save_buffer=true`` (it is
+        large); the local resume copy always does, so a resume on this machine is exact.
+        """
+        last = name == "last.pt"
         state = {
-            "agent": self.agent.state_dict(with_buffer=with_buffer),
             "trainer": dataclasses.asdict(self.progress),
             "torch_rng": torch.get_rng_state(),
+            "env_rng": env_rng_state(self.env) if self.env is not None else None,
             **self.checkpoint_extra,
         }
+        if last and not self.settings.save_buffer:
+            whole = state | {"agent": self.agent.state_dict(with_buffer=True)}
+            checkpoints.save(whole, self.resume_checkpoint)
+        state["agent"] = self.agent.state_dict(with_buffer=last and self.settings.save_buffer)
         path = checkpoints.save(state, self.checkpoint_dir / name)
+        if last and self.settings.save_buffer:
+            checkpoints.save(state, self.resume_checkpoint)
         self.tracker.log_artifact(path, "checkpoints")
         return path
 
@@ -137,14 +162,8 @@ class Trainer:
     # --- evaluation ---------------------------------------------------------------------------
     def evaluate(self) -> float:
         """Greedy episodes on the eval env; logs ``eval/*``, keeps best.pt; returns the mean."""
-        returns = run_episodes(
-            self.agent, self.eval_env, self.settings.eval_episodes, self.eval_seed
-        )
+        returns = run_episodes(self.agent, self.eval_env, self.eval_start_seeds)
         return self._record_evaluation(returns)
-
-    @property
-    def eval_seed(self) -> int:
-        return self.settings.seed + EVAL_SEED_OFFSET
 
     def _record_evaluation(self, returns, extra: dict[str, float] | None = None) -> float:
         p = self.progress
@@ -160,7 +179,7 @@ class Trainer:
 
     def record_video(self) -> None:
         """Log a gif of one greedy episode (from the first eval start state) to ``videos/``."""
-        _, frames, fps = record_episodes(self.agent, self.video_env, 1, self.eval_seed)
+        _, frames, fps = record_episodes(self.agent, self.video_env, self.eval_start_seeds[:1])
         path = self.checkpoint_dir.parent / "videos" / f"step_{self.progress.step:08d}.gif"
         path.parent.mkdir(parents=True, exist_ok=True)
         write_gif(frames[:TRAINING_GIF_FRAMES], path, fps)
@@ -215,9 +234,7 @@ class Trainer:
     def _loop(self, bar: tqdm) -> None:
         """Act, step, observe, update until the budget is spent (or a pruner stops the run)."""
         s, p, agent, env = self.settings, self.progress, self.agent, self.env
-        # A fresh run seeds its first reset with `seed`; a resumed one starts a new episode seeded
-        # by the episode count (an interrupted episode cannot be continued).
-        obs, _ = env.reset(seed=s.seed + p.episodes)
+        obs, _ = self.first_reset()
         losses: dict[str, torch.Tensor] = {}
         while p.step < s.total_steps:
             action = agent.act(obs, explore=True)
@@ -231,6 +248,16 @@ class Trainer:
                 obs, _ = env.reset()
             if self.after_step(losses, bar):
                 return
+
+    def first_reset(self):
+        """The loop's first reset: seeded from the run's seed in a fresh run; in a resumed one the
+        env's RNG continues from the checkpoint (an interrupted episode cannot be continued, so
+        a new one starts where the uninterrupted run's next episode would have)."""
+        if self._env_rng is None:
+            return first_training_reset(self.env, self.settings.seed)
+        restore_env_rng(self.env, self._env_rng)
+        self._env_rng = None
+        return self.env.reset()
 
     def record_episode(self, info: dict) -> None:
         """A training episode ended at the current step: count it, log its true return."""
@@ -297,10 +324,10 @@ class OfflineTrainer(Trainer):
                 return
 
     def evaluate(self) -> float:
-        agent, episodes, extra, headline = self.agent, self.settings.eval_episodes, {}, None
+        agent, extra, headline = self.agent, {}, None
         for target in agent.target_returns:
             agent.target_return = target
-            returns = run_episodes(agent, self.eval_env, episodes, self.eval_seed)
+            returns = run_episodes(agent, self.eval_env, self.eval_start_seeds)
             name = f"eval/target_{target:g}"
             extra[f"{name}/return_mean"] = float(returns.mean())
             score = self.normalize(float(returns.mean()))

@@ -19,6 +19,7 @@ dimension and nothing changes.
 from __future__ import annotations
 
 import copy
+import logging
 from collections.abc import Sequence
 
 import numpy as np
@@ -28,6 +29,9 @@ from walkers.agents.base import Agent, Transition, resolve_device
 from walkers.agents.health import NonFiniteGuard
 from walkers.buffers import Batch, ReplayBuffer
 from walkers.nn import Actor, EnsembleActor, make_critic, soft_update
+from walkers.seeding import numpy_rng, stream_seeds
+
+log = logging.getLogger("walkers")
 
 
 class GaussianNoise:
@@ -126,7 +130,7 @@ class ActorCritic(Agent):
         act_dim = len(self.action_low)
         self.population, self.num_critics = int(population), num_critics
         seeds = [seed + i for i in range(self.population)]
-        self.rngs = [np.random.default_rng(s) for s in seeds]  # one per member
+        self.rngs = [numpy_rng(s, "exploration") for s in seeds]  # one per member
         self.rng = self.rngs[0]
         half_range = (self.action_high - self.action_low) / 2
         self.noises = [NOISE_TYPES[noise_type](exploration_noise, act_dim, r) for r in self.rngs]
@@ -156,10 +160,17 @@ class ActorCritic(Agent):
         self.low_t = torch.as_tensor(self.action_low, device=self.device)
         self.high_t = torch.as_tensor(self.action_high, device=self.device)
 
-        self.buffers = [ReplayBuffer(buffer_size, obs_dim, act_dim, self.device, s) for s in seeds]
+        self.buffers = [
+            ReplayBuffer(buffer_size, obs_dim, act_dim, self.device, stream_seeds(s, "replay")[0])
+            for s in seeds
+        ]
         self.buffer = self.buffers[0]
         self.steps = 0  # transitions observed (per member)
         self.num_updates = 0  # critic updates done
+        # Uniform random actions while steps < random_until, no updates while steps < update_after:
+        # both learning_starts, unless a run resumed without its replay buffer refills it.
+        self.random_until = self.update_after = self.learning_starts
+        self.refilled_at: int | None = None  # the step a resume without the buffer refilled from
         shape = () if self.population == 1 else (self.population,)
         self.guard = NonFiniteGuard(self.device, shape)
         self._critic_loss, self._actor_loss = self.critic_loss, self.actor_loss
@@ -177,7 +188,7 @@ class ActorCritic(Agent):
 
     # --- acting -------------------------------------------------------------------------------
     def act(self, obs: np.ndarray, explore: bool) -> np.ndarray:
-        if explore and self.steps < self.learning_starts:  # uniform random warm-up
+        if explore and self.steps < self.random_until:  # uniform random warm-up
             return self.rng.uniform(self.action_low, self.action_high).astype(np.float32)
         with torch.no_grad():
             obs_t = torch.as_tensor(obs, dtype=torch.float32, device=self.device)
@@ -196,7 +207,7 @@ class ActorCritic(Agent):
     # --- a population: one observation and one transition per member, in member order -------
     def act_population(self, obs: np.ndarray, explore: bool) -> np.ndarray:
         """``(K, act_dim)`` actions for ``(K, obs_dim)`` observations."""
-        if explore and self.steps < self.learning_starts:
+        if explore and self.steps < self.random_until:
             uniform = [r.uniform(self.action_low, self.action_high) for r in self.rngs]
             return np.stack(uniform).astype(np.float32)
         with torch.no_grad():
@@ -280,7 +291,7 @@ class ActorCritic(Agent):
         return -q_pi.mean(dim=-1)
 
     def update(self) -> dict[str, torch.Tensor]:
-        if self.steps < self.learning_starts or len(self.buffer) < self.batch_size:
+        if self.steps < self.update_after or len(self.buffer) < self.batch_size:
             return {}
         self.num_updates += 1
         b = self._sample()
@@ -327,6 +338,8 @@ class ActorCritic(Agent):
             "critic_optimizer": self.critic_optimizer.state_dict(),
             "steps": self.steps,
             "num_updates": self.num_updates,
+            "random_until": self.random_until,
+            "update_after": self.update_after,
             "rng": self.rng.bit_generator.state,
             "noise": self.noise.state_dict(),
             "buffer": self.buffer.state_dict(with_data=with_buffer),
@@ -338,12 +351,49 @@ class ActorCritic(Agent):
             getattr(self, name).load_state_dict(state[name])
         self.actor_optimizer.load_state_dict(state["actor_optimizer"])
         self.critic_optimizer.load_state_dict(state["critic_optimizer"])
-        self.steps, self.num_updates = state["steps"], state["num_updates"]
+        self._load_counters(state)
         self.rng.bit_generator.state = state["rng"]
         self.noise.load_state_dict(state["noise"])
         self.buffer.load_state_dict(state["buffer"])
         if "guard" in state:
             self.guard.load_state_dict(state["guard"])
+        self._refill_if_lost(state["buffer"])
+
+    def resume_notes(self) -> dict[str, str]:
+        if self.refilled_at is None:
+            return {}
+        return {"walkers.buffer_refill": f"steps {self.refilled_at}-{self.update_after}"}
+
+    def _load_counters(self, state: dict) -> None:
+        self.steps, self.num_updates = state["steps"], state["num_updates"]
+        self.random_until = state.get("random_until", self.learning_starts)
+        self.update_after = state.get("update_after", self.learning_starts)
+
+    def _refill_if_lost(self, buffer_state: dict) -> None:
+        """A checkpoint without its transitions: refill the buffer before updating again.
+
+        Updating at once would fit the critics to the few transitions collected since (silently
+        a different experiment). Instead the agent collects ``max(learning_starts, batch_size)``
+        transitions first: of the current policy with exploration noise, or uniform random ones
+        if the run was interrupted in its warm-up (the warm-up restarts whole).
+        """
+        if "data" in buffer_state or buffer_state.get("size", 0) == 0:
+            return
+        refill = max(self.learning_starts, self.batch_size)
+        in_warmup = self.steps < self.random_until
+        if in_warmup:
+            self.random_until = self.steps + refill
+        self.update_after = max(self.update_after, self.steps + refill)
+        self.refilled_at = self.steps
+        log.warning(
+            "resumed at step %d without the replay buffer's %d transitions: refilling %d "
+            "transitions (%s) before updating again at step %d",
+            self.steps,
+            buffer_state["size"],
+            refill,
+            "uniform random: the warm-up again" if in_warmup else "current policy with noise",
+            self.update_after,
+        )
 
     def member_state_dict(self, i: int, with_buffer: bool = False) -> dict:
         """Member ``i`` of a population as a single agent's :meth:`state_dict`.
@@ -377,6 +427,8 @@ class ActorCritic(Agent):
             "critic_optimizer": optimizer_state(self.critic_optimizer, lambda x: x[critic_cut]),
             "steps": self.steps,
             "num_updates": self.num_updates,
+            "random_until": self.random_until,
+            "update_after": self.update_after,
             "rng": self.rngs[i].bit_generator.state,
             "noise": self.noises[i].state_dict(),
             "buffer": self.buffers[i].state_dict(with_data=with_buffer),
@@ -423,12 +475,13 @@ class ActorCritic(Agent):
 
         load_moments(self.actor_optimizer, state["actor_optimizer"], put_actor)
         load_moments(self.critic_optimizer, state["critic_optimizer"], put_critic)
-        self.steps, self.num_updates = state["steps"], state["num_updates"]
+        self._load_counters(state)
         self.rngs[i].bit_generator.state = state["rng"]
         self.noises[i].load_state_dict(state["noise"])
         self.buffers[i].load_state_dict(state["buffer"])
         guard = state.get("guard", {"skipped": 0, "in_a_row": 0})  # older checkpoints: none
         self.guard.skipped[i], self.guard.in_a_row[i] = guard["skipped"], guard["in_a_row"]
+        self._refill_if_lost(state["buffer"])
 
     def _critic_slice(self, i: int) -> slice:
         """Member ``i``'s critics in the ``K * C`` critic ensemble."""
@@ -461,3 +514,6 @@ class MemberAgent(Agent):
 
     def load_state_dict(self, state: dict) -> None:
         self.population.load_member_state_dict(self.index, state)
+
+    def resume_notes(self) -> dict[str, str]:
+        return self.population.resume_notes()

@@ -70,6 +70,11 @@ class Agent(ABC):
     @abstractmethod
     def load_state_dict(self, state: dict) -> None: ...
 
+    def resume_notes(self) -> dict[str, str]:
+        """After :meth:`load_state_dict`: what the resumed agent could not restore exactly, as
+        run tags (e.g. a replay buffer it has to refill); empty when the resume is exact."""
+        return {}
+
 
 def resolve_device(device: str) -> torch.device:
     """``auto`` -> cuda when available, else cpu."""

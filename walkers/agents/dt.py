@@ -25,6 +25,7 @@ import torch
 from walkers.agents.base import Agent, Transition, resolve_device
 from walkers.agents.health import NonFiniteGuard
 from walkers.buffers import SequenceSampler
+from walkers.seeding import stream_seeds
 from walkers.transformer import DecisionTransformerModel
 
 
@@ -107,7 +108,7 @@ class DecisionTransformer(Agent):
             return_scale=self.return_scale,
             max_timestep=self.max_timestep,
             device=self.device,
-            seed=seed,
+            seed=stream_seeds(seed, "replay")[0],
         )
 
     # --- acting: one episode, conditioned on self.target_return --------------------------------

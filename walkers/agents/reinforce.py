@@ -36,6 +36,7 @@ from walkers.agents.base import Agent, Transition, resolve_device
 from walkers.agents.health import NonFiniteGuard
 from walkers.buffers import EpisodeBuffer
 from walkers.nn import mlp
+from walkers.seeding import torch_generator
 
 
 def returns_to_go(rewards: np.ndarray, gamma: float) -> np.ndarray:
@@ -104,7 +105,7 @@ class Reinforce(Agent):
         self.episodes = EpisodeBuffer()
         self.steps = 0
         self.guard = NonFiniteGuard(self.device)
-        self.generator = torch.Generator(device=self.device).manual_seed(seed)
+        self.generator = torch_generator(seed, "policy", self.device)
 
     # --- acting -------------------------------------------------------------------------------
     def act(self, obs: np.ndarray, explore: bool) -> np.ndarray:

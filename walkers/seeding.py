@@ -1,0 +1,69 @@
+"""Every random stream of a run, derived from the run's seed.
+
+A run's streams (its training env, its evaluation start states, exploration noise, replay
+sampling, policy sampling) come from ``numpy.random.SeedSequence(seed, spawn_key=(stream,))``:
+statistically independent of each other within a run, and between seeds. Seeds of a study are
+then independent samples: seed 1 never starts an episode where seed 0 did (a plain ``seed + i``
+scheme shares almost every start state between neighbouring seeds), yet the same seed and config
+reproduce a run exactly.
+
+The training env is seeded once, at its first reset, and then runs on its own RNG (Gymnasium's
+convention); that RNG's state goes into every checkpoint, so a resumed run draws the start states
+the uninterrupted run would have drawn. Evaluations use a fixed set of start states per run (the
+same at every evaluation, so evaluations are comparable across checkpoints).
+"""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import torch
+
+#: The named streams of a run; a number is a stream's spawn key: never renumber one.
+STREAMS = {
+    "train_env": 0,  # the training env's first reset (then its own RNG runs)
+    "eval_env": 1,  # evaluation episode i starts from reset(seed=eval_start_seeds(...)[i])
+    "exploration": 2,  # off-policy warm-up actions and exploration noise
+    "replay": 3,  # replay buffer / dataset batch sampling
+    "policy": 4,  # stochastic policies' action sampling (REINFORCE)
+}
+
+
+def stream_seeds(seed: int, stream: str, n: int = 1) -> list[int]:
+    """``n`` 32-bit seeds of ``stream`` of run ``seed`` (the first k are the same for any n)."""
+    sequence = np.random.SeedSequence(seed, spawn_key=(STREAMS[stream],))
+    return [int(s) for s in sequence.generate_state(n)]
+
+
+def numpy_rng(seed: int, stream: str) -> np.random.Generator:
+    """A numpy generator for ``stream`` of run ``seed``."""
+    return np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(STREAMS[stream],)))
+
+
+def torch_generator(seed: int, stream: str, device: torch.device | str = "cpu") -> torch.Generator:
+    """A torch generator for ``stream`` of run ``seed``."""
+    generator = torch.Generator(device=device)
+    generator.manual_seed(stream_seeds(seed, stream)[0])
+    return generator
+
+
+def eval_start_seeds(seed: int, episodes: int) -> list[int]:
+    """Reset seeds of a run's ``episodes`` evaluation episodes (the same at every evaluation)."""
+    return stream_seeds(seed, "eval_env", episodes)
+
+
+def first_training_reset(env: gym.Env, seed: int):
+    """Reset the training env of run ``seed`` for its first episode: ``(obs, info)``."""
+    return env.reset(seed=stream_seeds(seed, "train_env")[0])
+
+
+def env_rng_state(env: gym.Env) -> dict:
+    """The training env's RNG state (what its next resets will draw), for a checkpoint."""
+    return env.unwrapped.np_random.bit_generator.state
+
+
+def restore_env_rng(env: gym.Env, state: dict) -> None:
+    """Continue the training env's RNG from a checkpoint (before its next, unseeded reset)."""
+    generator = np.random.Generator(getattr(np.random, state["bit_generator"])())
+    generator.bit_generator.state = state
+    env.unwrapped.np_random = generator

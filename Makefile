@@ -46,6 +46,10 @@ bench-throughput: $(STAMP)  ## env steps/s of walkers TD3/DDPG/REINFORCE vs Stab
 	$(VENV)/bin/pip install --quiet -e '.[bench]'
 	$(PY) benchmarks/bench_throughput.py $(ARGS)
 
+bench-learning: $(STAMP)  ## learning at equal budget: walkers TD3 vs SB3 TD3, final returns over seeds, IQM + CI (hours by default; quick: ARGS="--env pendulum --steps 15000 --seeds 3")
+	$(VENV)/bin/pip install --quiet -e '.[bench]'
+	$(PY) benchmarks/bench_learning.py $(ARGS)
+
 lint: $(STAMP)  ## ruff: style and common bugs
 	$(VENV)/bin/ruff check walkers tests $(wildcard benchmarks)
 
@@ -56,4 +60,4 @@ clean:  ## remove run outputs (mlflow.db, mlartifacts/, outputs/, multirun/, .wa
 	rm -rf mlflow.db mlruns mlartifacts outputs multirun .walkers reports .pytest_cache .ruff_cache
 	find . -name __pycache__ -type d -prune -not -path './$(VENV)/*' -exec rm -rf {} +
 
-.PHONY: help install train ab offline compare test bench bench-throughput lint ui clean
+.PHONY: help install train ab offline compare test bench bench-throughput bench-learning lint ui clean

@@ -1,21 +1,30 @@
 """``python -m walkers.compare``: finished runs in MLflow -> an A/B report with a verdict.
 
     python -m walkers.compare env=walker2d algos=[reinforce,td3] tracking.experiment=ab_walker2d
+    python -m walkers.compare env=pendulum algos=[td3] group_by=algo.hidden_sizes
 
-Runs are grouped by their ``algo`` tag, one seed per run. Only comparable runs enter: the
-chosen env, one budget (``total_steps``), status FINISHED; everything else is left out with a
-note in the report. Offline runs (``algo=dt``) count gradient steps, not env steps: they get their
-own budget and their own learning-curve panel, they are compared with the online runs on final
-return but not on AUC (a rate over different x-axes), and come from one dataset, named in the
-report. Every per-run number comes from the run's logged eval curve through the same
+An arm is one configuration, one seed per run (:mod:`walkers.arms`): runs are grouped by their
+``algo`` tag, or with ``group_by=<key>[,<key>]`` by the values of those config keys, and a group
+whose runs differ in anything but the seed and keys that cannot change results is split into
+arms named by what differs (``td3 (algo.hidden_sizes=[64, 64])``), never pooled; the report lists
+every split. ``algos=[...]`` filters by algorithm and orders the arms. Only comparable runs
+enter: the chosen env, one budget (``total_steps``), status FINISHED; everything else is left out
+with a note in the report. Offline runs (``algo=dt``) count gradient steps, not env steps: they
+get their own budget and their own learning-curve panel, they are compared with the online runs
+on final return but not on AUC (a rate over different x-axes), and come from one dataset, named
+in the report. Every per-run number comes from the run's logged eval curve through the same
 :func:`walkers.stats.run_summary` the trainer uses; across seeds the statistics are those of
-Agarwal et al. 2021 (:mod:`walkers.stats`).
+Agarwal et al. 2021 (:mod:`walkers.stats`). Published reference figures for the env
+(``published:`` in ``conf/env/<env>.yaml``) stand beside the measured ones, marked as such, for
+the algorithms in the report.
 """
 
 from __future__ import annotations
 
 import logging
 import math
+import re
+import sys
 from collections import Counter
 from dataclasses import dataclass, field
 from itertools import combinations
@@ -26,9 +35,10 @@ import numpy as np
 from omegaconf import DictConfig
 
 from walkers import stats, tracking
+from walkers.arms import Arm, build_arms, parse_group_by, unknown_key_hint
 from walkers.cli import exit_on_bad_overrides, or_exit
 from walkers.errors import ConfigError
-from walkers.report import AXIS_NAMES, verdict, write_report
+from walkers.report import AXIS_NAMES, PUBLISHED_CAVEAT, verdict, write_report
 from walkers.tracking import ENV_STEPS, GRADIENT_STEPS, KIND_TAG
 from walkers.trial import PRUNED_TAG
 
@@ -64,12 +74,21 @@ class SeedRun:
 
 @dataclass
 class AlgoResult:
+    """One arm's results. ``algo`` is the arm's name: the algorithm's when it has one
+    configuration (see :mod:`walkers.arms`); ``arm`` tells its algorithm and configuration."""
+
     algo: str
     runs: list[SeedRun]
     scores: np.ndarray
     iqm: tuple[float, float, float]  # point, low, high
     auc: np.ndarray
     steps_to_threshold: np.ndarray  # inf where a seed never reached it
+    arm: Arm | None = None
+
+    @property
+    def algorithm(self) -> str:
+        """The algorithm its runs trained (the ``algo`` tag)."""
+        return self.arm.algo if self.arm else self.runs[0].algo
 
     @property
     def x_axis(self) -> str:
@@ -88,6 +107,9 @@ class AlgoResult:
     def as_dict(self) -> dict:
         reached = np.isfinite(self.steps_to_threshold)
         return {
+            "algorithm": self.algorithm,
+            "group": self.arm.group_values if self.arm else {},
+            "differs_in": self.arm.distinct if self.arm else {},
             "seeds": len(self.runs),
             "x_axis": self.x_axis,
             "dataset": self.dataset,
@@ -139,6 +161,9 @@ class Comparison:
     pairs: list[PairResult]
     grids: dict[str, np.ndarray]  # x-axis -> steps of the aligned learning curves
     left_out: list[str] = field(default_factory=list)
+    group_by: list[str] = field(default_factory=list)  # the study's keys; []: by algorithm
+    splits: list[str] = field(default_factory=list)  # groups of several configurations
+    published: list[dict] = field(default_factory=list)  # reference figures (conf/env/*.yaml)
 
     def as_dict(self) -> dict:
         return {
@@ -163,6 +188,10 @@ class Comparison:
                 for p in self.pairs
             ],
             "left_out": self.left_out,
+            "group_by": self.group_by,
+            "split": self.splits,
+            "published": self.published,
+            "published_caveat": PUBLISHED_CAVEAT if self.published else None,
         }
 
 
@@ -250,14 +279,14 @@ def select_runs(
     return chosen, budgets, notes
 
 
-def load_seed_runs(client, runs: list, threshold: float) -> dict[str, list[SeedRun]]:
-    """Eval curves and summaries of ``runs``, grouped by algorithm (runs without evals skipped)."""
-    grouped: dict[str, list[SeedRun]] = {}
+def load_seed_runs(client, runs: list, threshold: float) -> dict[str, SeedRun]:
+    """Eval curves and summaries of ``runs`` by run id (runs without evals are not in it)."""
+    loaded: dict[str, SeedRun] = {}
     for run in runs:
         steps, values = tracking.metric_history(client, run.info.run_id, CURVE_METRIC)
         if not steps:
             continue
-        seed_run = SeedRun(
+        loaded[run.info.run_id] = SeedRun(
             run_id=run.info.run_id,
             algo=run.data.tags["algo"],
             seed=run.data.tags.get("seed", "?"),
@@ -268,8 +297,14 @@ def load_seed_runs(client, runs: list, threshold: float) -> dict[str, list[SeedR
             dataset=run.data.tags.get("dataset"),
             normalized_score=run.data.metrics.get("final/normalized_score"),
         )
-        grouped.setdefault(seed_run.algo, []).append(seed_run)
-    return grouped
+    return loaded
+
+
+def published_figures(env_cfg, algorithms: list[str]) -> list[dict]:
+    """The env's published reference figures (``published:`` in its config) for ``algorithms``,
+    in their order."""
+    figures = [dict(f) for f in (env_cfg.get("published") or [])]
+    return [f for a in algorithms for f in figures if f.get("algo") == a]
 
 
 # --- the statistics -------------------------------------------------------------------------
@@ -286,21 +321,24 @@ def compare_groups(
     confidence: float = 0.95,
     n_resamples: int = 5000,
     seed: int = 0,
+    arms: dict[str, Arm] | None = None,
 ) -> Comparison:
-    """Per-algorithm summaries and every pairwise comparison, in ``order``."""
+    """Per-arm summaries and every pairwise comparison, in ``order`` (arm names, the keys of
+    ``grouped``; ``arms`` describes them)."""
     boot = {"confidence": confidence, "n_resamples": n_resamples, "seed": seed}
     results = []
-    for algo in order:
-        runs = sorted(grouped[algo], key=lambda r: r.seed)
+    for name in order:
+        runs = sorted(grouped[name], key=lambda r: r.seed)
         scores = np.array([r.summary[score] for r in runs])
         results.append(
             AlgoResult(
-                algo=algo,
+                algo=name,
                 runs=runs,
                 scores=scores,
                 iqm=stats.iqm_ci([scores], **boot),
                 auc=np.array([r.summary["final/auc"] for r in runs]),
                 steps_to_threshold=np.array([r.summary["final/steps_to_threshold"] for r in runs]),
+                arm=(arms or {}).get(name),
             )
         )
     pairs = []
@@ -346,6 +384,17 @@ def _check(cfg: DictConfig) -> None:
         raise ConfigError(f"n_resamples={cfg.n_resamples!r} is not allowed: must be >= 100")
 
 
+def _check_group_by(group_by: list[str], runs: list, experiment: str) -> None:
+    """Every ``group_by`` key must be a config key of some training run of the experiment."""
+    params = [r.data.params for r in runs if r.data.tags.get(KIND_TAG, "train") == "train"]
+    for key in group_by:
+        if not any(key in p for p in params):
+            raise ConfigError(
+                f"group_by={key!r} is not a config key of any run in experiment {experiment!r}: "
+                + unknown_key_hint(key, params)
+            )
+
+
 def compare(cfg: DictConfig) -> tuple[Comparison, Path, str | None]:
     """Build the comparison ``cfg`` asks for, write the report; returns it, its dir, a UI link."""
     _check(cfg)
@@ -358,23 +407,36 @@ def compare(cfg: DictConfig) -> tuple[Comparison, Path, str | None]:
             f"experiments there: {', '.join(names) or 'none'}"
         )
     algos = list(cfg.algos)
+    group_by = parse_group_by(cfg.group_by)
     runs = tracking.search_runs(client, experiment.experiment_id)
+    _check_group_by(group_by, runs, cfg.tracking.experiment)
     chosen, budgets, notes = select_runs(
         runs, cfg.env.id, algos, cfg.total_steps, cfg.gradient_steps, cfg.dataset
     )
-    grouped = load_seed_runs(client, chosen, cfg.env.threshold)
-    order = algos or sorted(grouped)
-    missing = [a for a in order if a not in grouped]
-    if missing or not order:
+    loaded = load_seed_runs(client, chosen, cfg.env.threshold)
+    notes += [
+        f"run {r.info.run_id} ({r.data.tags.get('algo')}, seed {r.data.tags.get('seed')}) "
+        f"logged no {CURVE_METRIC}"
+        for r in chosen
+        if r.info.run_id not in loaded
+    ]
+    arms, lacking, splits = build_arms(
+        [r for r in chosen if r.info.run_id in loaded], group_by, algos
+    )
+    notes += lacking
+    found_algos = {a.algo for a in arms}
+    missing = [a for a in algos if a not in found_algos]
+    if missing or not arms:
         found = sorted({r.data.tags.get("algo") for r in runs if r.data.tags.get("algo")})
         raise ConfigError(
-            f"algos={order} has no finished {cfg.env.id} runs for {', '.join(missing) or 'any'} "
-            f"in experiment {cfg.tracking.experiment!r} (algorithms with runs there: "
-            f"{', '.join(found) or 'none'})" + (f"; left out: {'; '.join(notes)}" if notes else "")
+            f"algos={algos or sorted(found_algos)} has no finished {cfg.env.id} runs for "
+            f"{', '.join(missing) or 'any'} in experiment {cfg.tracking.experiment!r} "
+            f"(algorithms with runs there: {', '.join(found) or 'none'})"
+            + (f"; left out: {'; '.join(notes)}" if notes else "")
         )
     comparison = compare_groups(
-        grouped,
-        order,
+        {arm.name: [loaded[r.info.run_id] for r in arm.runs] for arm in arms},
+        [arm.name for arm in arms],
         env_id=cfg.env.id,
         threshold=cfg.env.threshold,
         budgets=budgets,
@@ -382,8 +444,12 @@ def compare(cfg: DictConfig) -> tuple[Comparison, Path, str | None]:
         confidence=cfg.confidence,
         n_resamples=cfg.n_resamples,
         seed=cfg.seed,
+        arms={arm.name: arm for arm in arms},
     )
     comparison.left_out = notes
+    comparison.group_by = group_by
+    comparison.splits = splits
+    comparison.published = published_figures(cfg.env, list(dict.fromkeys(a.algo for a in arms)))
     out = Path(cfg.out)
     files = write_report(
         comparison, out, source=f"{cfg.tracking.uri}, experiment {cfg.tracking.experiment!r}"
@@ -392,18 +458,32 @@ def compare(cfg: DictConfig) -> tuple[Comparison, Path, str | None]:
     return comparison, out, url
 
 
+#: MLflow's limits on a run name and a tag value.
+MAX_NAME, MAX_TAG = 250, 8000
+
+
+def mlflow_key(name: str) -> str:
+    """An arm's name as part of an MLflow param/metric key (letters, digits, ``_-. :`` only):
+    ``td3 (algo.hidden_sizes=[64, 64])`` -> ``td3 algo.hidden_sizes:64 64``."""
+    key = re.sub(r"[^\w.\- :]", "", name.replace("=", ":").replace(",", " "))
+    return re.sub(" +", " ", key).strip()[:200]
+
+
 def _log_report(client, cfg: DictConfig, comparison: Comparison, files: list[Path]) -> str:
     """The report as an MLflow run of its own, beside the runs it compares."""
     names = [r.algo for r in comparison.algos]
+    algorithms = list(dict.fromkeys(r.algorithm for r in comparison.algos))
+    study = f"-by-{'+'.join(comparison.group_by)}" if comparison.group_by else ""
     with tracking.side_run(
         client,
         cfg.tracking.experiment,
-        run_name=f"report-{'-vs-'.join(names)}-{comparison.env_id}",
+        run_name=f"report-{'-vs-'.join(algorithms)}{study}-{comparison.env_id}"[:MAX_NAME],
         tags={
             KIND_TAG: "report",
             "env": comparison.env_id,
-            "algos": ",".join(names),
-            "mlflow.note.content": verdict(comparison),
+            "algos": ",".join(algorithms),
+            "arms": "; ".join(names)[:MAX_TAG],
+            "mlflow.note.content": verdict(comparison)[:MAX_TAG],
         },
         spool_dir=Path(cfg.work_dir) / "spool",
     ) as tracker:
@@ -413,12 +493,12 @@ def _log_report(client, cfg: DictConfig, comparison: Comparison, files: list[Pat
                 **{f"budget.{axis}": b for axis, b in comparison.budgets.items()},
                 "confidence": comparison.confidence,
                 "n_resamples": cfg.n_resamples,
-                **{f"runs.{r.algo}": len(r.runs) for r in comparison.algos},
+                **{f"runs.{mlflow_key(r.algo)}": len(r.runs) for r in comparison.algos},
             }
         )
         tracker.log_metrics(
             {
-                f"{r.algo}/{key}": value
+                f"{mlflow_key(r.algo)}/{key}": value
                 for r in comparison.algos
                 for key, value in r.as_dict().items()
                 if isinstance(value, float | int) and math.isfinite(value)
@@ -439,6 +519,18 @@ def main(cfg: DictConfig) -> None:
         print(f"MLflow: `make ui`, then {url}")
 
 
+def group_by_as_list(args: list[str]) -> list[str]:
+    """``group_by=a,b`` -> ``group_by=[a,b]``: Hydra reads a bare comma list as a sweep, which
+    means nothing to a report; quoted or bracketed values pass as they are."""
+    return [
+        f"group_by=[{arg.partition('=')[2]}]"
+        if arg.startswith("group_by=") and "," in arg and arg[9:10] not in ("[", "'", '"')
+        else arg
+        for arg in args
+    ]
+
+
 if __name__ == "__main__":
+    sys.argv[1:] = group_by_as_list(sys.argv[1:])
     exit_on_bad_overrides("compare")
     main()

@@ -2,6 +2,8 @@
 
 Everything here renders a :class:`walkers.compare.Comparison`; nothing is computed that the
 comparison does not hold, except the learning-curve bands (a bootstrap over seeds per step).
+A ``group_by`` study also gets ``group_by.png``: the score (IQM, CI) against the keys' values.
+Published reference figures for the env, when it has any, get a table of their own.
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ import numpy as np
 matplotlib.use("Agg")  # files only, never a window
 import matplotlib.pyplot as plt  # noqa: E402
 
-from walkers import stats  # noqa: E402
+from walkers import arms, stats  # noqa: E402
 from walkers.tracking import ENV_STEPS, GRADIENT_STEPS  # noqa: E402
 
 if TYPE_CHECKING:
@@ -25,6 +27,12 @@ if TYPE_CHECKING:
 
 QUANTITY_NAMES = {"score": "final return", "auc": "AUC (rate of learning)"}
 AXIS_NAMES = {ENV_STEPS: "env steps", GRADIENT_STEPS: "gradient steps"}
+#: The line printed with published reference figures.
+PUBLISHED_CAVEAT = (
+    "Published figures, not measured here: other code, budgets, seed counts and measures (see "
+    "each source). Figures from another env version than the one measured are guides, not "
+    "targets: Gymnasium's v5 MuJoCo envs changed the physics."
+)
 
 
 def _num(x: float) -> str:
@@ -154,7 +162,15 @@ def plot_scores(c: Comparison, path: Path) -> Path:
                 capsize=5,
             )
         ax.plot(i + 0.15, point, "k_", markersize=14)
-    ax.set_xticks(range(len(c.algos)), [label(r) for r in c.algos], fontsize=8)
+    labels = [label(r) for r in c.algos]
+    long = max(map(len, labels)) > 16
+    ax.set_xticks(
+        range(len(c.algos)),
+        labels,
+        fontsize=8,
+        rotation=20 if long else 0,
+        ha="right" if long else "center",
+    )
     ax.set_ylabel(f"{c.score} (dots: seeds; bar: IQM, {c.confidence:.0%} CI)")
     ax.set_title(c.env_id)
     ax.grid(alpha=0.3, axis="y")
@@ -164,10 +180,118 @@ def plot_scores(c: Comparison, path: Path) -> Path:
     return path
 
 
+def _group_positions(c: Comparison) -> tuple[list[str], dict[str, int]]:
+    """The group_by values in report order (tick labels) and each arm's position among them."""
+    labels: list[str] = []
+    position = {}
+    for r in c.algos:
+        tick = " / ".join(r.arm.group_values.values())
+        if tick not in labels:
+            labels.append(tick)
+        position[r.algo] = labels.index(tick)
+    return labels, position
+
+
+def plot_group_by(c: Comparison, path: Path) -> Path:
+    """Score against the ``group_by`` values, in the report's (natural) order, evenly spaced:
+    every seed a dot, the IQM with its CI a point and bar, one line per remaining configuration
+    (one line unless the groups hold several)."""
+    ticks, position = _group_positions(c)
+    lines = arms.series([r.arm for r in c.algos])
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    fig, ax = plt.subplots(figsize=(1.4 * len(ticks) + 3.5, 4.5))
+    names = list(dict.fromkeys(lines.values()))
+    for i, line in enumerate(names):
+        members = [r for r in c.algos if lines[r.algo] == line]
+        color, shift = colors[i % len(colors)], 0.08 * (i - (len(names) - 1) / 2)
+        xs = [position[r.algo] + shift for r in members]
+        for x, r in zip(xs, members, strict=True):
+            dots = [x - 0.06] * len(r.scores)
+            ax.scatter(dots, r.scores, color=color, alpha=0.35, s=14, zorder=2)
+            point, low, high = r.iqm
+            if not math.isnan(low):
+                ax.errorbar(x, point, yerr=[[point - low], [high - point]], color=color, capsize=5)
+        ax.plot(xs, [r.iqm[0] for r in members], "o-", color=color, label=line or None, zorder=3)
+    ax.set_xticks(range(len(ticks)), ticks, fontsize=8)
+    ax.set_xlim(-0.5, len(ticks) - 0.5)
+    ax.set_xlabel(f"{' / '.join(c.group_by)} (sorted: numbers by value, lists by their sum)")
+    ax.set_ylabel(f"{c.score}: IQM, {c.confidence:.0%} CI (dots: seeds)")
+    ax.set_title(f"{c.env_id}: {c.score} by {', '.join(c.group_by)}")
+    if any(names):
+        ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def _arms_section(c: Comparison) -> list[str]:
+    """How runs became arms: the study's keys, and every group split into several arms."""
+    if not (c.group_by or c.splits):
+        return []
+    how = (
+        f"grouped by {', '.join(f'`{k}`' for k in c.group_by)}"
+        if c.group_by
+        else "grouped by algorithm"
+    )
+    out = [
+        "",
+        "## Arms",
+        "",
+        f"Runs are {how}. An arm is one configuration: runs whose configs differ in anything but "
+        "the seed and keys that cannot change results (`walkers.arms.NOT_THE_EXPERIMENT`) are "
+        "separate arms, never pooled.",
+    ]
+    if c.splits:
+        out += ["", "Split into several arms:", ""] + [f"- {note}" for note in c.splits]
+    return out
+
+
+def _published_section(c: Comparison) -> list[str]:
+    """Published figures for the algorithms in the report, beside what was measured here."""
+    if not c.published:
+        return []
+    out = [
+        "",
+        "## Published reference figures",
+        "",
+        f"{PUBLISHED_CAVEAT} This report measured {c.env_id} ({budgets_text(c)}).",
+        "",
+        f"| algorithm | env (published) | steps | return ± std | source | measured here: IQM "
+        f"of {c.score} |",
+        "|---|---|---|---|---|---|",
+    ]
+    for fig in c.published:
+        std = f" ± {fig['std']:,}" if fig.get("std") is not None else ""  # as published
+        measured = "; ".join(
+            f"{r.algo} {_interval(*r.iqm)}" for r in c.algos if r.algorithm == fig["algo"]
+        )
+        out.append(
+            f"| {fig['algo']} | {_version(fig.get('env_version'), c.env_id)} "
+            f"| {_num(fig.get('steps'))} "
+            f"| {fig['return']:,}{std} (published) | {fig.get('source', '?')} | {measured} |"
+        )
+    return out
+
+
+def _version(published: str | None, measured: str) -> str:
+    """The published env version, said to be the measured one or another."""
+    if published is None:
+        return "?"
+    return f"{published} ({'same version' if published == measured else 'other version'})"
+
+
+def _title(c: Comparison) -> str:
+    if c.group_by:
+        algorithms = ", ".join(dict.fromkeys(r.algorithm for r in c.algos))
+        return f"# {algorithms} on {c.env_id} by {', '.join(c.group_by)}"
+    return f"# {' vs '.join(r.algo for r in c.algos)} on {c.env_id}"
+
+
 def markdown(c: Comparison, source: str) -> str:
     level = f"{c.confidence:.0%}"
-    names = " vs ".join(r.algo for r in c.algos)
-    out = [f"# {names} on {c.env_id}", "", verdict(c), ""]
+    out = [_title(c), "", verdict(c), ""]
     out += [
         f"Runs from {source}; budget {budgets_text(c)}; score `{c.score}`; threshold "
         f"{_num(c.threshold)}. IQM = interquartile mean; CIs are {level} percentile bootstraps "
@@ -175,9 +299,9 @@ def markdown(c: Comparison, source: str) -> str:
         "beats a random seed of B (Mann-Whitney U / nm), after Agarwal et al. 2021. A verdict "
         f"needs the CI of P(A > B) to exclude 0.5 and Mann-Whitney p < {1 - c.confidence:.2g}.",
         "",
-        "## Per algorithm",
+        "## Per arm",
         "",
-        f"| algorithm | seeds | {c.score} mean ± std | IQM [{level} CI] | AUC mean ± std "
+        f"| arm | seeds | {c.score} mean ± std | IQM [{level} CI] | AUC mean ± std "
         "| steps to threshold (median) | seeds reaching it |",
         "|---|---|---|---|---|---|---|",
     ]
@@ -189,6 +313,8 @@ def markdown(c: Comparison, source: str) -> str:
             f"| {_steps(d['steps_to_threshold_median'], r.x_axis)} "
             f"| {d['threshold_reached']}/{d['seeds']} |"
         )
+    out += _published_section(c)
+    out += _arms_section(c)
     out += [
         "",
         "## Pairwise",
@@ -221,10 +347,14 @@ def markdown(c: Comparison, source: str) -> str:
         "![learning curves](learning_curves.png)",
         "",
         "![scores](scores.png)",
+    ]
+    if c.group_by:
+        out += ["", f"![score by {', '.join(c.group_by)}](group_by.png)"]
+    out += [
         "",
         "## Runs",
         "",
-        f"| algorithm | seed | run id | {c.score} | AUC | steps to threshold |",
+        f"| arm | seed | run id | {c.score} | AUC | steps to threshold |",
         "|---|---|---|---|---|---|",
     ]
     for r in c.algos:
@@ -240,15 +370,19 @@ def markdown(c: Comparison, source: str) -> str:
 
 
 def write_report(c: Comparison, out: Path, source: str) -> list[Path]:
-    """``report.md``, ``summary.json``, ``learning_curves.png``, ``scores.png`` in ``out``."""
+    """``report.md``, ``summary.json``, ``learning_curves.png``, ``scores.png`` in ``out``, and
+    ``group_by.png`` for a ``group_by`` study."""
     out.mkdir(parents=True, exist_ok=True)
     report = out / "report.md"
     report.write_text(markdown(c, source))
     summary = out / "summary.json"
     summary.write_text(json.dumps(c.as_dict(), indent=2))
-    return [
+    files = [
         report,
         summary,
         plot_learning_curves(c, out / "learning_curves.png"),
         plot_scores(c, out / "scores.png"),
     ]
+    if c.group_by:
+        files.append(plot_group_by(c, out / "group_by.png"))
+    return files

@@ -1,0 +1,256 @@
+"""The arms of a comparison: one arm is one configuration, run with several seeds.
+
+A training run's MLflow params are its resolved config, flattened
+(:func:`walkers.tracking.flatten`). Two runs belong to the same arm when those params agree on
+everything but the seed and the keys in :data:`NOT_THE_EXPERIMENT`, which cannot change what a
+run learns. Runs of different configurations are never pooled: a group (an algorithm, or the
+values of the ``group_by`` keys) that holds several configurations becomes several arms, named
+by what sets them apart (``td3 (algo.hidden_sizes=[64, 64])``), and a note says so.
+"""
+
+from __future__ import annotations
+
+import ast
+import difflib
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+
+#: Config keys (MLflow params; a trailing "." is the whole subtree) that do not make an arm:
+#: a run's results are the same for any value of these, so runs differing only here are seeds of
+#: one arm. Everything else (algo.*, env.* but these, total_steps, eval_every, eval_episodes,
+#: dataset...) is part of the configuration: eval_every and eval_episodes change what is measured.
+NOT_THE_EXPERIMENT = (
+    "seed",  # what varies between the seeds of an arm
+    "resume",  # a resumed run continues the same experiment
+    "population",  # a member of population=K is the same experiment as the run of its seed alone
+    "progress",  # the progress bar
+    "log_every",  # how often losses and throughput are logged
+    "checkpoint_every",  # how often checkpoints are written
+    "save_buffer",  # whether the replay buffer is uploaded with them
+    "video_every",  # gifs of the greedy policy
+    "tracking.",  # where the run is logged
+    "work_dir",  # local scratch
+    "torch_threads",  # speed only
+    "device",  # for CPU runs only (see arm_config): an accelerator's run stays its own arm
+    "sweep.",  # Optuna plumbing (study, trial, pruner); a pruned trial is left out anyway
+    "divergence_patience",  # a run that diverges ends FAILED and is left out; others never use it
+    "optimized_metric",  # the value train returns to a sweep, not what it learns
+    "dataset_stats.",  # describe the dataset (named by `dataset`, part of the arm)
+    "algo.compile",  # the same maths, compiled
+    "env.threshold",  # only for steps-to-threshold, which the report recomputes with its own
+    "env.published",  # published reference figures, shown in reports (conf/env/*.yaml)
+)
+
+#: ``device`` values that mean the CPU. ``auto`` counts as CPU: the params do not record what it
+#: resolved to, so an ``auto`` run on a GPU machine is not told apart from a CPU one.
+CPU_DEVICES = ("cpu", "auto")
+
+#: How a key a run does not have is shown (a key added to the config after the run).
+ABSENT = "(not set)"
+
+#: At most this many differing keys in an arm's name; the split note lists them all.
+NAME_KEYS = 3
+
+
+def is_not_the_experiment(key: str) -> bool:
+    """Whether ``key`` is in :data:`NOT_THE_EXPERIMENT` (itself or under a listed subtree)."""
+    return any(
+        key.startswith(item) if item.endswith(".") else key == item for item in NOT_THE_EXPERIMENT
+    )
+
+
+def arm_config(params: Mapping[str, str], exclude: Iterable[str] = ()) -> dict[str, str]:
+    """The part of a run's params that makes its arm: all but :data:`NOT_THE_EXPERIMENT` and
+    ``exclude`` (the ``group_by`` keys, which name the group instead). ``device`` stays when it
+    names an accelerator (cuda...): GPU kernels need not give the CPU's numbers."""
+    excluded = set(exclude)
+    return {
+        key: value
+        for key, value in params.items()
+        if key not in excluded
+        and (not is_not_the_experiment(key) or (key == "device" and value not in CPU_DEVICES))
+    }
+
+
+def differing_keys(configs: Sequence[Mapping[str, str]]) -> list[str]:
+    """Keys whose value is not the same in every config (missing counts as a value), sorted."""
+    keys = set().union(*configs) if configs else set()
+    return sorted(k for k in keys if len({c.get(k, ABSENT) for c in configs}) > 1)
+
+
+def _parsed(value: str):
+    try:
+        return ast.literal_eval(value)
+    except (ValueError, SyntaxError, TypeError, MemoryError, RecursionError):
+        return value
+
+
+def _is_number(x) -> bool:
+    return isinstance(x, int | float) and not isinstance(x, bool)
+
+
+def natural_key(value: str) -> tuple:
+    """Sort key for a param value: numbers by value, lists of numbers by their total (hidden
+    sizes by total units: [64, 64] < [256] < [256, 256]) then length, anything else as text."""
+    parsed = _parsed(value)
+    if _is_number(parsed):
+        return (0, (parsed,), value)
+    if isinstance(parsed, list | tuple) and parsed and all(_is_number(x) for x in parsed):
+        return (1, (sum(parsed), len(parsed), *parsed), value)
+    return (2, (), value)
+
+
+def assignments(keys: Sequence[str], values: Sequence[str]) -> str:
+    """``k1=v1, k2=v2``."""
+    return ", ".join(f"{k}={v}" for k, v in zip(keys, values, strict=True))
+
+
+def describe(distinct: Mapping[str, str], limit: int = NAME_KEYS) -> str:
+    """``k=v, ...`` for what sets a configuration apart; ``algo.name`` comes first and makes
+    ``algo._target_`` redundant; past ``limit`` keys it says how many more there are."""
+    keys = sorted(distinct, key=lambda k: (k != "algo.name", k))
+    if "algo.name" in distinct:
+        keys = [k for k in keys if k != "algo._target_"]
+    shown = ", ".join(f"{k}={distinct[k]}" for k in keys[:limit])
+    return shown + (f", +{len(keys) - limit} more" if len(keys) > limit else "")
+
+
+def arm_name(group: str, distinct: Mapping[str, str], limit: int = NAME_KEYS) -> str:
+    """``group``, or ``group (k=v, ...)`` with what sets this configuration apart in its group."""
+    text = describe(distinct, limit)
+    return f"{group} ({text})" if text else group
+
+
+def parse_group_by(group_by) -> list[str]:
+    """``group_by`` as given (null, ``"a"``, ``"a,b"`` or a list) -> a list of keys."""
+    if group_by is None:
+        return []
+    items = [group_by] if isinstance(group_by, str) else list(group_by)
+    return [key.strip() for item in items for key in str(item).split(",") if key.strip()]
+
+
+def unknown_key_hint(key: str, runs_params: Sequence[Mapping[str, str]], limit: int = 12) -> str:
+    """What to say about a ``group_by`` key no run has: a close match, and keys runs do have
+    (first those whose values differ between the runs: the ones worth a study)."""
+    known = sorted(set().union(*runs_params)) if runs_params else []
+    close = difflib.get_close_matches(key, known, n=1)
+    varying = [k for k in differing_keys(runs_params) if not is_not_the_experiment(k)]
+    listed = varying + [k for k in known if k not in varying]
+    hint = f"did you mean {close[0]}? " if close else ""
+    if not listed:
+        return hint + "the runs have no params"
+    more = f", ... ({len(listed) - limit} more)" if len(listed) > limit else ""
+    return hint + f"keys the runs have: {', '.join(listed[:limit])}{more}"
+
+
+@dataclass
+class Arm:
+    """One configuration and its runs (MLflow run objects, one seed each)."""
+
+    name: str
+    algo: str  # the runs' algorithm (their `algo` tag)
+    group: str  # the algorithm, or the group_by assignment (k=v, ...)
+    group_values: dict[str, str]  # the group_by keys and their values; {} without group_by
+    config: dict[str, str]  # the arm's configuration (arm_config of its runs)
+    distinct: dict[str, str] = field(default_factory=dict)  # what sets it apart in its group
+    runs: list = field(default_factory=list)
+
+
+def _group_of(run, group_by: Sequence[str]) -> tuple[str, ...]:
+    if not group_by:
+        return (run.data.tags.get("algo", "?"),)
+    return tuple(run.data.params[k] for k in group_by)
+
+
+def _configs_of(runs: Sequence, exclude: Sequence[str]) -> list[tuple[dict[str, str], list]]:
+    """The distinct configurations among ``runs``, each with its runs, in first-seen order."""
+    by_config: dict[tuple, tuple[dict[str, str], list]] = {}
+    for run in runs:
+        config = arm_config(run.data.params, exclude)
+        by_config.setdefault(tuple(sorted(config.items())), (config, []))[1].append(run)
+    return list(by_config.values())
+
+
+def _runs(n: int) -> str:
+    return f"{n} run" if n == 1 else f"{n} runs"
+
+
+def split_note(group: str, arms: Sequence[Arm], keys: Sequence[str]) -> str:
+    """The report's line for a group that holds several configurations."""
+    listed = "; ".join(f"{a.name}: {_runs(len(a.runs))}" for a in arms)
+    return (
+        f"{group}: {len(arms)} configurations, compared as separate arms and never pooled "
+        f"(they differ in {', '.join(keys)}): {listed}"
+    )
+
+
+def _arms_of_group(
+    group: tuple[str, ...], runs: Sequence, group_by: Sequence[str]
+) -> tuple[list[Arm], str | None]:
+    label = assignments(group_by, group) if group_by else group[0]
+    configs = _configs_of(runs, group_by)
+    keys = differing_keys([config for config, _ in configs])
+    arms = []
+    for config, members in configs:
+        distinct = {k: config.get(k, ABSENT) for k in keys}
+        arms.append(
+            Arm(
+                name=arm_name(label, distinct),
+                algo=members[0].data.tags.get("algo", "?"),
+                group=label,
+                group_values=dict(zip(group_by, group, strict=True)) if group_by else {},
+                config=config,
+                distinct=distinct,
+                runs=members,
+            )
+        )
+    if len({a.name for a in arms}) < len(arms):  # a shortened name is not unique: spell out
+        for arm in arms:
+            arm.name = arm_name(label, arm.distinct, limit=len(keys))
+    arms.sort(key=lambda a: [natural_key(v) for v in a.distinct.values()])
+    return arms, split_note(label, arms, keys) if len(arms) > 1 else None
+
+
+def build_arms(
+    runs: Sequence, group_by: Sequence[str] = (), algos: Sequence[str] = ()
+) -> tuple[list[Arm], list[str], list[str]]:
+    """Split ``runs`` into arms of one configuration each; returns ``(arms, left_out, splits)``,
+    notes on the runs left out and on every group split into several arms.
+
+    Without ``group_by`` a group is an algorithm, in the order of ``algos`` (else by name).
+    With it a group is one combination of the keys' values, in natural order (:func:`natural_key`),
+    its arms in the order of ``algos``; runs without every ``group_by`` key are left out.
+    A group of several configurations becomes several arms, and a note lists them.
+    """
+    left_out, splits = [], []
+    if group_by:
+        lacking = {r.info.run_id for r in runs if any(k not in r.data.params for k in group_by)}
+        if lacking:
+            left_out.append(
+                f"{_runs(len(lacking))} without {' or '.join(group_by)} in their config "
+                f"(run ids {', '.join(sorted(lacking))})"
+            )
+        runs = [r for r in runs if r.info.run_id not in lacking]
+    groups: dict[tuple[str, ...], list] = {}
+    for run in runs:
+        groups.setdefault(_group_of(run, group_by), []).append(run)
+    rank = {a: i for i, a in enumerate(algos)}
+    if group_by:
+        order = sorted(groups, key=lambda g: [natural_key(v) for v in g])
+    else:
+        order = sorted(groups, key=lambda g: (rank.get(g[0], len(rank)), g[0]))
+    arms = []
+    for group in order:
+        group_arms, note = _arms_of_group(group, groups[group], group_by)
+        group_arms.sort(key=lambda a: rank.get(a.algo, len(rank)))  # stable: keeps natural order
+        arms += group_arms
+        if note:
+            splits.append(note)
+    return arms, left_out, splits
+
+
+def series(arms: Sequence[Arm]) -> dict[str, str]:
+    """For a score-vs-key plot: each arm's series (its configuration apart from the group_by
+    keys), labelled by what differs between the series; "" when there is one series."""
+    keys = differing_keys([a.config for a in arms])
+    return {a.name: describe({k: a.config.get(k, ABSENT) for k in keys}, len(keys)) for a in arms}

@@ -7,11 +7,14 @@ import math
 import optuna
 import pytest
 from hydra.core.utils import JobReturn, JobStatus
+from hydra_plugins.hydra_optuna_sweeper.config import Direction
 from omegaconf import OmegaConf
 from optuna.trial import TrialState
 
 from tests.conftest import all_runs, one_line_error, run_cli
-from walkers.sweeper import record_outcome
+from walkers.errors import ConfigError
+from walkers.sweeper import record_outcome, sweep_direction
+from walkers.trial import TrialReporter
 
 #: A trial of the pendulum study at test size.
 TINY_TRIAL = [
@@ -105,6 +108,53 @@ def test_diverged_trial_scores_the_worst_finite_value_and_errors_fail():
     crashed = study.ask()
     error = record_outcome(study, crashed, _job_return(error=RuntimeError("boom")))
     assert isinstance(error, RuntimeError) and study.trials[3].state == TrialState.FAIL
+
+
+def test_a_minimizing_study_ranks_a_never_reached_threshold_worst():
+    # final/steps_to_threshold is inf for a trial that never reached the threshold
+    study = optuna.create_study(direction="minimize")
+    study.tell(study.ask(), 3000.0)
+    assert record_outcome(study, study.ask(), _job_return(math.inf)) is None
+    assert study.trials[1].value == math.inf and "diverged" not in study.trials[1].user_attrs
+    assert record_outcome(study, study.ask(), _job_return(math.nan)) is None  # diverged
+    assert study.trials[2].value == 3000.0 and study.trials[2].user_attrs["diverged"]
+    assert study.best_trial.number == 0
+    study.tell(study.ask(), 2000.0)
+    assert study.best_trial.number == 3
+
+
+PRUNERS = {
+    "median": {"_target_": "optuna.pruners.MedianPruner", "n_startup_trials": 1},
+    "threshold": {"_target_": "optuna.pruners.ThresholdPruner", "lower": -1000.0},
+}
+
+
+@pytest.mark.parametrize("direction", ["maximize", "minimize"])
+@pytest.mark.parametrize("pruner", PRUNERS)
+def test_pruners_stop_low_eval_returns_whichever_way_the_study_goes(tmp_path, pruner, direction):
+    # a trial reports eval returns (higher is better) also to a study that minimizes its metric
+    storage = f"sqlite:///{tmp_path / 'optuna.db'}"
+    study = optuna.create_study(study_name="s", storage=storage, direction=direction)
+
+    def reporter() -> TrialReporter:
+        job = {"study": "s", "storage": storage, "pruner": PRUNERS[pruner]}
+        return TrialReporter(OmegaConf.create(job | {"trial_id": study.ask()._trial_id}))
+
+    first = reporter()
+    assert not first(200, -500.0)
+    study.tell(first.trial.number, 0.0)  # complete: the median pruner compares with it
+    assert reporter()(200, -1500.0)  # a lower eval return: pruned
+    assert not reporter()(200, -100.0)  # a higher one runs on
+
+
+def test_sweep_direction_follows_the_metric():
+    assert sweep_direction("final/auc", None) == "maximize"
+    assert sweep_direction("final/steps_to_threshold", None) == "minimize"
+    assert sweep_direction("final/steps_to_threshold", Direction.minimize) == "minimize"
+    assert sweep_direction("final/return_mean", ["maximize"]) == "maximize"
+    for metric, direction in (("final/auc", "minimize"), ("final/auc", "up")):
+        with pytest.raises(ConfigError, match="hydra.sweeper.direction="):
+            sweep_direction(metric, direction)
 
 
 def test_best_trial_becomes_a_preset(store):

@@ -49,7 +49,7 @@ def preset_yaml(name: str, sweep_cfg: DictConfig, trial, storage: str) -> str:
     lines = [
         "# @package _global_",
         f"# Tuned by the Optuna study {study!r} (sweeps/{sweep}.yaml, storage {storage}):",
-        f"# best trial {trial.number}, objective {trial.value}.",
+        f"# best trial {trial.number}: {sweep_cfg.optimized_metric} = {trial.value}.",
         f"#   python -m walkers.train experiment={name}",
         "defaults:",
         f"  - override /algo: {choices.algo}",

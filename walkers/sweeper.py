@@ -3,14 +3,23 @@
 Built on hydra-optuna-sweeper 1.4.0rc3 (its search-space syntax, samplers and trial ->
 overrides) with what RL tuning needs and that plugin lacks:
 
+- Direction: the study optimizes ``optimized_metric`` the way :data:`walkers.metrics.
+  METRIC_DIRECTIONS` says (``final/steps_to_threshold`` is minimized, returns are maximized).
+  Sweep files leave ``hydra.sweeper.direction`` null; one that contradicts the metric, an
+  unknown metric, or a stored study of another metric or direction is refused with one
+  ``error:`` line and exit 2 before any study or MLflow run is created.
 - Pruning: every job gets its trial (``sweep.*`` overrides); the trainer reports each evaluation
   to it and stops when the job's pruner says so (:mod:`walkers.trial`); the trial is told PRUNED.
 - Resume: ``n_trials`` is the size of the study. Running the same command again continues an
-  interrupted study; trials an interrupted sweep left RUNNING are marked FAIL.
-- Divergence: a trial whose score is NaN/inf scores the worst finite value so far.
+  interrupted study; trials an interrupted sweep left RUNNING are marked FAIL. A rerun with
+  ``n_trials`` at or below the trials already done runs nothing and reports the study again.
+- Divergence: a trial whose score is NaN (or infinitely good) scores the worst finite value so
+  far; an infinitely bad score (a threshold never reached) is kept and ranks below all others.
 - MLflow: one parent run per study (tag ``walkers.kind=study``), every trial's run nested under
-  it and tagged with the study and trial number; the best trial is logged to the parent, and
-  ``optimization_results.yaml`` is written to the sweep dir and logged.
+  it and tagged with the study and trial number. After every sweep the parent run gets the best
+  trial as values that may change when a resumed study finds a better one: tags
+  ``best.<param>``, metrics ``best_value`` / ``best_trial`` (step: trials done), and the
+  artifact ``optimization_results.yaml`` (also written to the sweep dir).
 """
 
 from __future__ import annotations
@@ -18,6 +27,7 @@ from __future__ import annotations
 import logging
 import math
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -28,10 +38,14 @@ from hydra_plugins.hydra_optuna_sweeper._impl import (
     OptunaSweeperImpl,
     create_params_from_overrides,
 )
+from hydra_plugins.hydra_optuna_sweeper.config import Direction
 from omegaconf import DictConfig, OmegaConf
+from optuna.study import StudyDirection
 from optuna.trial import TrialState
 
 from walkers import tracking
+from walkers.errors import ConfigError
+from walkers.metrics import MAXIMIZE, MINIMIZE, metric_direction
 from walkers.trial import PRUNED_AT
 
 log = logging.getLogger("walkers")
@@ -39,6 +53,8 @@ log = logging.getLogger("walkers")
 SAMPLER_TARGETS = ("hydra_plugins.hydra_optuna_sweeper.*", "optuna.samplers.*")
 DONE = (TrialState.COMPLETE, TrialState.PRUNED, TrialState.FAIL)
 STUDY_TAG = "walkers.study"
+#: Study user attribute: the metric its trials are scored by (a resumed study must keep it).
+METRIC_ATTR = "walkers.optimized_metric"
 
 
 def absolute_storage(storage: str | None) -> str | None:
@@ -48,21 +64,83 @@ def absolute_storage(storage: str | None) -> str | None:
     return storage
 
 
+# --- the direction --------------------------------------------------------------------------
+def given_direction(direction: Any) -> str | None:
+    """The direction a sweep file or the command line set, or None where it is left unset.
+
+    Unset is ``null``, or hydra-optuna-sweeper's own default for a sweep that does not mention
+    it: the enum ``Direction.minimize`` (what a yaml file or command line sets is a string).
+    """
+    if direction is None or isinstance(direction, Direction):
+        return None
+    if isinstance(direction, Sequence) and not isinstance(direction, str):
+        if len(direction) != 1:
+            raise ConfigError(
+                f"hydra.sweeper.direction={list(direction)} is not allowed: a walkers sweep "
+                "optimizes one metric (optimized_metric); leave direction null"
+            )
+        (direction,) = direction
+    direction = direction.name if isinstance(direction, Direction) else str(direction)
+    if direction not in (MAXIMIZE, MINIMIZE):
+        raise ConfigError(
+            f"hydra.sweeper.direction={direction!r} is not allowed: must be null "
+            f"(it follows optimized_metric), {MAXIMIZE} or {MINIMIZE}"
+        )
+    return direction
+
+
+def sweep_direction(metric: str, direction: Any) -> str:
+    """The study's direction: ``metric``'s; a direction the sweep sets itself must agree."""
+    wanted = metric_direction(metric)
+    given = given_direction(direction)
+    if given is not None and given != wanted:
+        raise ConfigError(
+            f"hydra.sweeper.direction={given} contradicts optimized_metric={metric}, which is "
+            f"{wanted}d: leave direction null (it follows the metric)"
+        )
+    return wanted
+
+
+def check_objective(study: optuna.Study, storage: str | None, metric: str) -> None:
+    """A resumed study keeps its metric and direction: scores of another kind do not compare.
+
+    A study from before the metric was stored is checked by its direction alone.
+    """
+    stored = study.user_attrs.get(METRIC_ATTR)
+    stored_direction, direction = study.direction.name.lower(), metric_direction(metric)
+    if stored_direction != direction or stored not in (None, metric):
+        raise ConfigError(
+            f"optimized_metric={metric} ({direction}d) cannot continue study "
+            f"{study.study_name!r} in {storage}: it {stored_direction}s {stored or 'its metric'}; "
+            "name a new study with hydra.sweeper.study_name=<name>"
+        )
+    if stored is None:
+        study.set_user_attr(METRIC_ATTR, metric)
+
+
+# --- scoring a trial ------------------------------------------------------------------------
 def worst_finite(study: optuna.Study) -> float:
     """The worst score among completed trials (the floor of the range if there is none)."""
     complete = study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,))
     values = [t.value for t in complete if t.value is not None and math.isfinite(t.value)]
-    maximize = study.direction == optuna.study.StudyDirection.MAXIMIZE
+    maximize = study.direction == StudyDirection.MAXIMIZE
     if not values:
         return -sys.float_info.max if maximize else sys.float_info.max
     return min(values) if maximize else max(values)
 
 
+def infinitely_bad(study: optuna.Study) -> float:
+    """The infinity that ranks below every score: -inf when maximizing, inf when minimizing."""
+    return -math.inf if study.direction == StudyDirection.MAXIMIZE else math.inf
+
+
 def record_outcome(study: optuna.Study, trial: optuna.Trial, result: JobReturn) -> Exception | None:
     """Tell the study how a trial's job ended; returns the job's exception if it failed.
 
-    Pruned (the job set ``pruned_at_step``) -> PRUNED; a NaN/inf score -> the worst finite
-    score so far (a diverged configuration is bad, not an error); an exception -> FAIL.
+    Pruned (the job set ``pruned_at_step``) -> PRUNED; NaN or an infinitely *good* score -> the
+    worst finite score so far (a diverged configuration is bad, not an error); an infinitely
+    *bad* score (``final/steps_to_threshold`` of a trial that never reached the threshold) is
+    told as it is: Optuna ranks it below every finite score; an exception -> FAIL.
     """
     try:
         value = float(result.return_value)  # re-raises what the job raised
@@ -73,6 +151,9 @@ def record_outcome(study: optuna.Study, trial: optuna.Trial, result: JobReturn) 
     (frozen,) = [t for t in study.get_trials(deepcopy=False) if t.number == trial.number]
     if PRUNED_AT in frozen.user_attrs:
         study.tell(trial, state=TrialState.PRUNED)
+    elif value == infinitely_bad(study):
+        log.warning("trial %d scored %s: ranked below every finite score", trial.number, value)
+        study.tell(trial, value)
     elif not math.isfinite(value):
         worst = worst_finite(study)
         log.warning(
@@ -83,6 +164,11 @@ def record_outcome(study: optuna.Study, trial: optuna.Trial, result: JobReturn) 
     else:
         study.tell(trial, value)
     return None
+
+
+def trials_done(study: optuna.Study) -> int:
+    """Trials that ended (complete, pruned or failed): what ``n_trials`` counts."""
+    return len(study.get_trials(deepcopy=False, states=DONE))
 
 
 class PruningOptunaSweeper(OptunaSweeperImpl):
@@ -101,7 +187,7 @@ class PruningOptunaSweeper(OptunaSweeperImpl):
         self.sampler_cfg = sampler
         super().__init__(
             self._make_sampler(),
-            direction,
+            direction,  # as the sweep gave it; sweep() replaces it with the metric's
             absolute_storage(storage),
             study_name,
             n_trials,
@@ -119,6 +205,9 @@ class PruningOptunaSweeper(OptunaSweeperImpl):
 
     # --- the study ----------------------------------------------------------------------------
     def _open_study(self) -> optuna.Study:
+        """Create the study or load it to resume (refused if it was scored by another metric)."""
+        metric = self.config.optimized_metric
+        self.direction = sweep_direction(metric, self.direction)
         study = optuna.create_study(
             study_name=self.study_name,
             storage=self.storage,
@@ -126,6 +215,7 @@ class PruningOptunaSweeper(OptunaSweeperImpl):
             directions=self._get_directions(),
             load_if_exists=True,
         )
+        check_objective(study, self.storage, metric)
         if asked := len(study.trials):
             # A resumed study: a seeded sampler restarted from its seed would propose the same
             # points again, so it continues from seed + the number of trials already asked.
@@ -133,15 +223,30 @@ class PruningOptunaSweeper(OptunaSweeperImpl):
         for stale in study.get_trials(deepcopy=False, states=(TrialState.RUNNING,)):
             log.warning("trial %d was left running by an interrupted sweep: FAIL", stale.number)
             study.tell(stale.number, state=TrialState.FAIL)
-        done = len(study.get_trials(deepcopy=False, states=DONE))
-        log.info(
-            "study %r in %s: %d of %d trials done",
-            study.study_name,
-            self.storage,
-            done,
-            self.n_trials,
-        )
+        self._log_size(study, metric)
         return study
+
+    def _log_size(self, study: optuna.Study, metric: str) -> None:
+        done, name = trials_done(study), study.study_name
+        if done >= self.n_trials:
+            log.info(
+                "study %r in %s already has %d trials (of n_trials=%d asked): nothing to run; "
+                "reporting its best (raise hydra.sweeper.n_trials to continue it)",
+                name,
+                self.storage,
+                done,
+                self.n_trials,
+            )
+        else:
+            log.info(
+                "study %r in %s: %d of %d trials done; %s %s",
+                name,
+                self.storage,
+                done,
+                self.n_trials,
+                self.direction.removesuffix("e") + "ing",
+                metric,
+            )
 
     def _job_overrides(self, study: optuna.Study, trial: optuna.Trial, parent_id: str | None):
         overrides = [
@@ -162,28 +267,17 @@ class PruningOptunaSweeper(OptunaSweeperImpl):
         )
         for name in fixed:
             space.pop(name, None)
-        study = self._open_study()
+        try:
+            study = self._open_study()
+        except ConfigError as e:  # raised inside Hydra's multirun: one line, not a traceback
+            print(f"error: {e}", file=sys.stderr)
+            sys.exit(2)
         parent = open_parent_run(self.config, study, self.storage)
         status = tracking.FAILED
         try:
-            while todo := self.n_trials - len(study.get_trials(deepcopy=False, states=DONE)):
-                trials = [study.ask() for _ in range(min(todo, self.n_jobs))]
-                overrides = [
-                    (*job, *self._job_overrides(study, trial, parent and parent.run_id))
-                    for job, trial in zip(
-                        self._configure_trials(trials, space, fixed, fixed_overrides),
-                        trials,
-                        strict=True,
-                    )
-                ]
-                returns = self.launcher.launch(overrides, initial_job_idx=self.job_idx)
-                self.job_idx += len(returns)
-                failures = [
-                    record_outcome(study, t, r) for t, r in zip(trials, returns, strict=True)
-                ]
-                failures = [e for e in failures if e is not None]
-                if len(failures) / len(returns) > self.max_failure_rate:
-                    raise failures[0]
+            while (todo := self.n_trials - trials_done(study)) > 0:
+                batch = min(todo, self.n_jobs)
+                self._run_batch(study, batch, space, fixed, fixed_overrides, parent)
             self._report(study, fixed, parent)
             status = tracking.FINISHED
         except KeyboardInterrupt:
@@ -193,17 +287,38 @@ class PruningOptunaSweeper(OptunaSweeperImpl):
             if parent is not None:
                 parent.end(status)
 
+    def _run_batch(self, study, size, space, fixed, fixed_overrides, parent) -> None:
+        """Ask ``size`` trials, launch them as jobs, tell the study how each ended.
+
+        Raises the first failure when more than ``max_failure_rate`` of the batch failed.
+        """
+        trials = [study.ask() for _ in range(size)]
+        overrides = [
+            (*job, *self._job_overrides(study, trial, parent and parent.run_id))
+            for job, trial in zip(
+                self._configure_trials(trials, space, fixed, fixed_overrides), trials, strict=True
+            )
+        ]
+        returns = self.launcher.launch(overrides, initial_job_idx=self.job_idx)
+        self.job_idx += len(returns)
+        failures = [record_outcome(study, t, r) for t, r in zip(trials, returns, strict=True)]
+        failures = [e for e in failures if e is not None]
+        if len(failures) / len(returns) > self.max_failure_rate:
+            raise failures[0]
+
     def _report(self, study: optuna.Study, fixed: dict, parent: tracking.Tracker | None) -> None:
         """Best trial -> ``optimization_results.yaml`` in the sweep dir and the parent run."""
         complete = study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,))
         if not complete:
             log.warning("no trial of study %r completed: no best parameters", study.study_name)
             return
-        best = study.best_trial
+        best, metric = study.best_trial, self.config.optimized_metric
         results = {
             "name": "optuna",
             "study_name": study.study_name,
             "storage": self.storage,
+            "optimized_metric": metric,
+            "direction": self.direction,
             "best_trial": best.number,
             "best_value": best.value,
             "best_params": dict(best.params),  # the sampled values; fixed_params were given
@@ -213,13 +328,27 @@ class PruningOptunaSweeper(OptunaSweeperImpl):
         path = Path(self.config.hydra.sweep.dir) / "optimization_results.yaml"
         path.parent.mkdir(parents=True, exist_ok=True)
         OmegaConf.save(OmegaConf.create(results), path)
-        log.info("best trial %d: %s = %s, params %s", best.number, "value", best.value, best.params)
+        log.info("best trial %d: %s = %s, params %s", best.number, metric, best.value, best.params)
         log.info("written to %s", path)
         if parent is not None:
-            parent.log_params({f"best.{k}": v for k, v in best.params.items()})
-            parent.log_metrics({"best_value": best.value, "best_trial": best.number}, step=0)
-            parent.log_artifact(path)
-            log.info("MLflow parent run: `make ui`, then %s", parent.url)
+            log_best(parent, study, best, path)
+
+
+def log_best(
+    parent: tracking.Tracker, study: optuna.Study, best: optuna.trial.FrozenTrial, results: Path
+) -> None:
+    """The best trial on the study's parent run, in forms a resumed study may change.
+
+    MLflow params never change once logged, so the best values are tags (``best.<param>``) and
+    metrics (``best_value``, ``best_trial``, at step = trials done: their history is how the
+    best improved as the study grew), plus the ``optimization_results.yaml`` artifact.
+    """
+    parent.set_tags({f"best.{k}": v for k, v in best.params.items()})
+    parent.log_metrics(
+        {"best_value": best.value, "best_trial": best.number}, step=trials_done(study)
+    )
+    parent.log_artifact(results)
+    log.info("MLflow parent run: `make ui`, then %s", parent.url)
 
 
 def open_parent_run(
@@ -233,17 +362,17 @@ def open_parent_run(
         return None
     experiment_id = tracking.get_or_create_experiment(client, config.tracking.experiment)
     spool = Path(config.work_dir) / "spool"
+    tags = {
+        tracking.KIND_TAG: "study",
+        STUDY_TAG: study.study_name,
+        "optuna.storage": str(storage),
+        "walkers.optimized_metric": config.optimized_metric,
+        "walkers.direction": study.direction.name.lower(),
+    }
     query = f"tags.`walkers.kind` = 'study' and tags.`{STUDY_TAG}` = '{study.study_name}'"
     for run in tracking.search_runs(client, experiment_id, query):
-        return tracking.Tracker.reopen(client, run.info.run_id, spool)
-    return tracking.Tracker.start(
-        client,
-        config.tracking.experiment,
-        run_name=f"study-{study.study_name}",
-        tags={
-            tracking.KIND_TAG: "study",
-            STUDY_TAG: study.study_name,
-            "optuna.storage": str(storage),
-        },
-        spool_dir=spool,
-    )
+        parent = tracking.Tracker.reopen(client, run.info.run_id, spool)
+        parent.set_tags(tags)  # a study's run from before these tags existed gets them too
+        return parent
+    run_name = f"study-{study.study_name}"
+    return tracking.Tracker.start(client, config.tracking.experiment, run_name, tags, spool)

@@ -3,6 +3,11 @@
 The sweeper (:mod:`walkers.sweeper`) passes each job its study, storage and trial id as
 ``sweep.*`` overrides; the pruner is the job's own ``sweep.pruner`` config (an
 ``optuna.pruners`` class), so a sweep file chooses it and a command line can swap it.
+
+Pruners judge intermediate values in the study's direction, and the value reported is the eval
+return (higher is better). A study that minimizes its metric (``final/steps_to_threshold``)
+is therefore told the negated eval return, and a threshold pruner's bounds, written as eval
+returns, are negated to match: a pruner config means the same in every study.
 """
 
 from __future__ import annotations
@@ -13,6 +18,7 @@ import math
 import optuna
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
+from optuna.study import StudyDirection
 
 log = logging.getLogger("walkers")
 
@@ -21,32 +27,38 @@ PRUNED_AT = "pruned_at_step"
 #: MLflow tag of a run its pruner stopped early (``walkers.compare`` leaves such runs out).
 PRUNED_TAG = "walkers.pruned_at_step"
 PRUNER_TARGETS = ["optuna.pruners.*"]
+THRESHOLD_PRUNER = "optuna.pruners.ThresholdPruner"
 
 
-def make_pruner(pruner_cfg: DictConfig | None) -> optuna.pruners.BasePruner:
+def make_pruner(pruner_cfg: DictConfig | None, maximize: bool = True) -> optuna.pruners.BasePruner:
+    """The pruner of ``pruner_cfg``; ``maximize=False``: for a study told negated eval returns."""
     if not pruner_cfg:
         return optuna.pruners.NopPruner()
-    return instantiate(
-        OmegaConf.to_container(pruner_cfg, resolve=True), _execution_whitelist_=PRUNER_TARGETS
-    )
+    kwargs = OmegaConf.to_container(pruner_cfg, resolve=True)
+    if not maximize and kwargs.get("_target_") == THRESHOLD_PRUNER:
+        # "prune below eval return L" is "prune above -L" for the negated return
+        lower, upper = kwargs.pop("lower", None), kwargs.pop("upper", None)
+        kwargs["lower"] = None if upper is None else -upper
+        kwargs["upper"] = None if lower is None else -lower
+    return instantiate(kwargs, _execution_whitelist_=PRUNER_TARGETS)
 
 
 class TrialReporter:
     """``reporter(step, eval_return) -> True`` when the trial should stop (it was pruned)."""
 
     def __init__(self, sweep_cfg: DictConfig):
-        study = optuna.load_study(
-            study_name=sweep_cfg.study,
-            storage=sweep_cfg.storage,
-            pruner=make_pruner(sweep_cfg.pruner),
-        )
+        study = optuna.load_study(study_name=sweep_cfg.study, storage=sweep_cfg.storage)
+        maximize = study.direction == StudyDirection.MAXIMIZE
+        study.pruner = make_pruner(sweep_cfg.pruner, maximize)
+        #: +1, or -1 in a minimizing study: the sign of the eval return as the pruner sees it
+        self.sign = 1.0 if maximize else -1.0
         self.trial = optuna.trial.Trial(study, sweep_cfg.trial_id)
         self.pruned_at: int | None = None
 
     def __call__(self, step: int, value: float) -> bool:
         if not math.isfinite(value):  # a diverged policy: nothing to compare; let it run out
             return False
-        self.trial.report(value, step)
+        self.trial.report(self.sign * value, step)
         if self.trial.should_prune():
             self.trial.set_user_attr(PRUNED_AT, step)
             self.pruned_at = step

@@ -50,8 +50,9 @@ bench-learning: $(STAMP)  ## learning at equal budget: walkers TD3 vs SB3 TD3, f
 	$(VENV)/bin/pip install --quiet -e '.[bench]'
 	$(PY) benchmarks/bench_learning.py $(ARGS)
 
-lint: $(STAMP)  ## ruff: style and common bugs
+lint: $(STAMP)  ## ruff (style, common bugs) and lint-imports (imports point down the layers)
 	$(VENV)/bin/ruff check walkers tests $(wildcard benchmarks)
+	$(VENV)/bin/lint-imports
 
 ui: $(STAMP)  ## MLflow UI on the local store: http://127.0.0.1:5000 (MLFLOW_PORT=... to change)
 	$(VENV)/bin/mlflow ui --backend-store-uri sqlite:///mlflow.db --port $(MLFLOW_PORT)

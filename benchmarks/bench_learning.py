@@ -15,17 +15,17 @@ action half-range, policy delay 2, tau 0.005, gamma 0.99, buffer 1e6, one gradie
 step), trained on walkers' training env.
 
 Both final policies are then scored here by one function, walkers' own evaluation
-(``walkers.rollout.run_episodes``): ``--episodes`` deterministic episodes on a separate,
+(``walkers.training.rollout.run_episodes``): ``--episodes`` deterministic episodes on a separate,
 unshaped env, episode i starting from ``walkers.seeding.eval_start_seeds(seed)[i]`` (independent
 start states per seed, the same for both libraries), returns the env's own. walkers' policy comes
 from its run's ``checkpoints/last.pt`` artifact; the run's own ``final/return_mean`` is checked
 against the re-evaluation. One table per env: per-seed final returns, mean ± std, IQM
 (``scipy.stats.trim_mean(x, 0.25)``) with a 95% percentile-bootstrap CI over seeds
-(``walkers.stats.iqm_ci``, ``scipy.stats.bootstrap``), wall time per seed (the training process,
-start to exit), env steps/s of the training loop (walkers: its ``perf/sps``, which includes its
-one final evaluation; SB3: ``learn()``), and the ratio walkers / SB3 of the IQMs. Every store,
-checkpoint and model lives in a temporary directory, removed at the end. A benchmark, not a
-test: SB3 is the ``bench`` extra (``pip install -e '.[bench]'``).
+(``walkers.analysis.stats.iqm_ci``, ``scipy.stats.bootstrap``), wall time per seed (the
+training process, start to exit), env steps/s of the training loop (walkers: its ``perf/sps``,
+which includes its one final evaluation; SB3: ``learn()``), and the ratio walkers / SB3 of the
+IQMs. Every store, checkpoint and model lives in a temporary directory, removed at the end. A
+benchmark, not a test: SB3 is the ``bench`` extra (``pip install -e '.[bench]'``).
 """
 
 from __future__ import annotations
@@ -50,13 +50,13 @@ from mlflow import MlflowClient
 from omegaconf import OmegaConf
 from rounds import alternate
 
-from walkers import checkpoints
-from walkers.agents.factory import agent_from_checkpoint
+from walkers.analysis.stats import iqm_ci
 from walkers.cli import CONF_DIR
-from walkers.envs import make_env
-from walkers.rollout import run_episodes
 from walkers.seeding import eval_start_seeds
-from walkers.stats import iqm_ci
+from walkers.training import checkpoints
+from walkers.training.checkpoints import agent_from_checkpoint
+from walkers.training.envs import make_env
+from walkers.training.rollout import run_episodes
 
 SB3_WORKER = Path(__file__).resolve().parent / "sb3_td3.py"
 EXPERIMENT = "bench_learning"
@@ -260,7 +260,7 @@ def print_table(setup: Setup, warmup: int, results: dict[str, list[Result]]) -> 
     print(
         f"\n{setup.env['id']}: TD3, {setup.steps} env steps ({warmup} random warm-up), "
         f"seeds {', '.join(map(str, seeds))}, {setup.threads} torch threads. Final policy, "
-        f"{setup.episodes} deterministic episodes per seed on a separate env (walkers.rollout."
+        f"{setup.episodes} deterministic episodes per seed on a separate env (walkers' "
         "run_episodes, start states walkers.seeding.eval_start_seeds(seed)), the env's returns"
     )
     rows, iqms = [], {}

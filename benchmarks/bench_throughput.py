@@ -29,8 +29,8 @@ from walkers.agents.base import Transition
 from walkers.agents.ddpg import DDPG
 from walkers.agents.reinforce import Reinforce
 from walkers.agents.td3 import TD3
-from walkers.buffers import DATA_FIELDS, ReplayBuffer
-from walkers.envs import env_spaces
+from walkers.data.replay import DATA_FIELDS, ReplayBuffer
+from walkers.training.envs import env_spaces
 
 ENV_ID, HIDDEN, BATCH, WARMUP = "Walker2d-v5", 256, 256, 1_000
 

@@ -9,7 +9,7 @@ refuses options SB3 has no equivalent for. SB3 works in actions scaled to [-1, 1
 standard deviations are fractions of the action range's half-width, as walkers' are.
 
 :class:`SB3Policy` puts a trained model behind the calls walkers' rollouts make, so one
-evaluation function (:func:`walkers.rollout.run_episodes`) scores both libraries.
+evaluation function (:func:`walkers.training.rollout.run_episodes`) scores both libraries.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ import torch
 from stable_baselines3 import TD3
 from stable_baselines3.common.noise import NormalActionNoise
 
-from walkers.envs import make_env
+from walkers.training.envs import make_env
 
 #: walkers ActorCritic options SB3's TD3 cannot express, and the value that it can.
 UNSUPPORTED = {
@@ -67,7 +67,7 @@ def make_model(algo: dict, env, seed: int) -> TD3:
 
 
 class SB3Policy:
-    """A trained SB3 model behind the calls of :func:`walkers.rollout.run_episodes`."""
+    """A trained SB3 model behind the calls of :func:`walkers.training.rollout.run_episodes`."""
 
     def __init__(self, model: TD3):
         self.model = model

@@ -10,8 +10,8 @@ from tests.conftest import TINY, all_runs, compose_cfg
 from walkers.agents.base import Transition
 from walkers.agents.ddpg import DDPG
 from walkers.agents.reinforce import Reinforce, returns_to_go
-from walkers.envs import make_env
 from walkers.train import train
+from walkers.training.envs import make_env
 
 OFF_POLICY_TINY = ["algo.learning_starts=200", "algo.batch_size=64"]
 REINFORCE_TINY = ["algo.episodes_per_update=1"]

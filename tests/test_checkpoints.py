@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from tests.conftest import all_runs, run_cli, signal_once_checkpointed
-from walkers import checkpoints
 from walkers.errors import CheckpointError
+from walkers.training import checkpoints
 
 
 def test_round_trip_and_no_temp_files_left(tmp_path):

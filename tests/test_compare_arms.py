@@ -9,15 +9,15 @@ from mlflow.utils.validation import validate_param_and_metric_name
 from omegaconf import OmegaConf
 
 from tests.conftest import compose_cfg
-from walkers import arms
-from walkers.compare import (
+from walkers.analysis import arms
+from walkers.analysis.comparison import (
     SeedRun,
     compare_groups,
-    group_by_as_list,
     mlflow_key,
     published_figures,
 )
-from walkers.report import PUBLISHED_CAVEAT, markdown
+from walkers.analysis.report import PUBLISHED_CAVEAT, markdown
+from walkers.compare import group_by_as_list
 
 TD3 = {
     "algo._target_": "walkers.agents.td3.TD3",

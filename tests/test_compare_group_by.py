@@ -7,7 +7,7 @@ import json
 import pytest
 
 from tests.conftest import TINY, all_runs, compose_cfg, new_store, one_line_error, run_cli
-from walkers.compare import compare
+from walkers.analysis.comparison import compare
 from walkers.train import train
 
 SIZES = ["[16, 16]", "[32, 32]"]  # as the runs' params spell them

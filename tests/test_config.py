@@ -8,8 +8,8 @@ from omegaconf import OmegaConf
 
 from tests.conftest import CONF_DIR, compose_cfg, run_cli
 from walkers import PROJECT_ROOT
-from walkers.trial import make_pruner
-from walkers.validate import validate
+from walkers.training.validate import validate
+from walkers.tuning.trial import make_pruner
 
 GROUPS = {
     group: sorted(p.stem for p in (PROJECT_ROOT / "conf" / group).glob("*.yaml"))
@@ -91,7 +91,7 @@ def test_sweep_files_compose_with_a_pruner_and_a_search_space(sweep):
     with initialize_config_dir(config_dir=CONF_DIR):
         cfg = compose("train", overrides=[f"sweeps={sweep}", *offline], return_hydra_config=True)
     validate(cfg)
-    assert cfg.hydra.sweeper._target_ == "walkers.sweeper.PruningOptunaSweeper"
+    assert cfg.hydra.sweeper._target_ == "walkers.tuning.sweeper.PruningOptunaSweeper"
     assert cfg.hydra.sweeper.study_name == sweep and cfg.hydra.sweeper.params
     assert make_pruner(cfg.sweep.pruner) is not None
     absent = object()

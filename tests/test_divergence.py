@@ -9,9 +9,9 @@ import pytest
 import torch
 
 from tests.conftest import all_runs, compose_cfg
-from walkers import checkpoints
 from walkers.train import train
-from walkers.trainer import TrainingDiverged
+from walkers.training import checkpoints
+from walkers.training.bookkeeping import TrainingDiverged
 
 
 class NaNRewardsAfter(gym.Wrapper):

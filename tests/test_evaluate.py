@@ -9,8 +9,8 @@ import pytest
 from PIL import Image, ImageSequence
 
 from tests.conftest import TINY, all_runs, compose_cfg, new_store, one_line_error, run_cli
-from walkers.evaluate import evaluate
 from walkers.train import train
+from walkers.training.playback import evaluate
 
 PENDULUM_STEPS = 200  # Pendulum-v1 episodes always last 200 steps
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import signal
 
 from tests.conftest import all_runs, run_cli, signal_once_checkpointed
-from walkers import checkpoints
+from walkers.training import checkpoints
 
 #: A run far longer than any test waits: it is stopped by a signal after its first evaluation.
 LONG_RUN = [

@@ -24,14 +24,16 @@ from tests.conftest import (
     one_line_error,
     run_cli,
 )
-from walkers import checkpoints, datasets
-from walkers.buffers import replay_episodes
-from walkers.collect import collect, play
-from walkers.compare import compare
-from walkers.envs import make_env
+from walkers.analysis.comparison import compare
+from walkers.data import datasets
+from walkers.data.replay import replay_episodes
 from walkers.errors import ConfigError
-from walkers.train import agent_from_checkpoint, train
-from walkers.validate import validate
+from walkers.train import train
+from walkers.training import checkpoints
+from walkers.training.checkpoints import agent_from_checkpoint
+from walkers.training.collection import collect, play
+from walkers.training.envs import make_env
+from walkers.training.validate import validate
 
 EXPERT = "walkers/pendulum/td3-v0"  # greedy TD3 episodes: returns from about -1500 to 0
 MIXED = "walkers/pendulum/mixed-v0"  # 3 random-policy episodes, then 3 noisy TD3 ones

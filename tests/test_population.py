@@ -7,13 +7,14 @@ import pytest
 import torch
 
 from tests.conftest import TINY, all_runs, compose_cfg
-from walkers import checkpoints
 from walkers.agents.base import Transition
 from walkers.agents.td3 import TD3
-from walkers.envs import make_env
 from walkers.errors import ConfigError
-from walkers.train import agent_from_checkpoint, train
-from walkers.validate import validate
+from walkers.train import train
+from walkers.training import checkpoints
+from walkers.training.checkpoints import agent_from_checkpoint
+from walkers.training.envs import make_env
+from walkers.training.validate import validate
 
 SMALL = dict(batch_size=16, learning_starts=20, hidden_sizes=[16, 16], buffer_size=1000)
 

@@ -15,14 +15,14 @@ import pytest
 import torch
 
 from tests.conftest import all_runs, compose_cfg, run_cli, signal_once_checkpointed
-from walkers import checkpoints
-from walkers.envs import make_env
 from walkers.seeding import (
     env_rng_state,
     eval_start_seeds,
     first_training_reset,
     restore_env_rng,
 )
+from walkers.training import checkpoints
+from walkers.training.envs import make_env
 
 SEEDS = range(5)
 EPISODES = 30
@@ -159,7 +159,7 @@ def test_a_resume_without_the_buffer_says_so_and_refills_before_updating(
 
 
 def test_a_learning_rate_warm_up_longer_than_the_run_is_pointed_out(caplog):
-    from walkers.train import warn_short_warmup
+    from walkers.training.session import warn_short_warmup
 
     warn_short_warmup(compose_cfg(["algo=dt", "env=pendulum", "total_steps=1500"]))
     (record,) = [r for r in caplog.records if "algo.warmup_steps" in r.getMessage()]

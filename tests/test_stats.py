@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy import stats as sps
 
-from walkers import stats
+from walkers.analysis import stats
 
 
 def test_iqm_is_the_mean_of_the_middle_half():

@@ -11,7 +11,7 @@ import time
 import urllib.request
 
 from tests.conftest import spawn_cli
-from walkers import checkpoints
+from walkers.training import checkpoints
 
 
 def _free_port() -> int:

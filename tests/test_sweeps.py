@@ -13,8 +13,8 @@ from optuna.trial import TrialState
 
 from tests.conftest import all_runs, one_line_error, run_cli
 from walkers.errors import ConfigError
-from walkers.sweeper import record_outcome, sweep_direction
-from walkers.trial import TrialReporter
+from walkers.tuning.sweeper import record_outcome, sweep_direction
+from walkers.tuning.trial import TrialReporter
 
 #: A trial of the pendulum study at test size.
 TINY_TRIAL = [

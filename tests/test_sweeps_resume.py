@@ -11,7 +11,7 @@ from optuna.trial import TrialState
 
 from tests.conftest import all_runs, one_line_error, run_cli
 from walkers.errors import ConfigError
-from walkers.sweeper import check_objective
+from walkers.tuning.sweeper import check_objective
 
 STUDY = "pendulum_tiny"
 #: A trial of the pendulum study at its smallest: two evaluations, no pruning (before warm-up).

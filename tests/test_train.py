@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 
 from tests.conftest import TINY, all_runs, compose_cfg, metric_steps, run_cli
-from walkers import checkpoints
 from walkers.train import train
+from walkers.training import checkpoints
 
 TRAIN_METRICS = {"train/episode_return", "train/episode_length", "perf/sps"}
 EVAL_METRICS = {"eval/return_mean", "eval/return_std"}

@@ -13,10 +13,10 @@ from hydra import compose, initialize_config_dir
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.errors import ConfigCompositionException, MissingConfigException, OverrideParseException
 
-from walkers import PROJECT_ROOT
+from walkers import CONF_DIR as _CONF_DIR
 from walkers.errors import CheckpointError, ConfigError
 
-CONF_DIR = str(PROJECT_ROOT / "conf")
+CONF_DIR = str(_CONF_DIR)
 #: Sweep values Hydra can enumerate (a,b,c / range()); Optuna's interval() etc. are the sweeper's.
 _ENUMERABLE = ("ChoiceSweep", "RangeSweep")
 

@@ -1,115 +1,22 @@
 """``python -m walkers.evaluate``: replay a trained policy, print its return, record a video.
 
     python -m walkers.evaluate run_id=<id> checkpoint=best episodes=10 video=true out=<dir>
-    python -m walkers.evaluate checkpoint=path/to/best.pt render=human
+    python -m walkers.evaluate checkpoint=path/to/last.pt render=human
 
-The checkpoint carries the run's config, so the env and the agent are rebuilt exactly as they
-were trained. Episodes are deterministic (``explore=False``) and seeded like the run's own
-evaluations. Rendering is headless (``rgb_array``, MuJoCo through EGL) unless ``render=human``.
+The replay itself is :mod:`walkers.training.playback`.
 """
 
 from __future__ import annotations
 
-import json
-import logging
-from pathlib import Path
-
 import hydra
 from omegaconf import DictConfig
 
-from walkers import checkpoints, tracking
+from walkers import CONF_DIR
 from walkers.cli import exit_on_bad_overrides, or_exit
-from walkers.envs import make_env
-from walkers.errors import ConfigError
-from walkers.rollout import record_episodes
-from walkers.seeding import eval_start_seeds
-from walkers.video import write_videos
-
-log = logging.getLogger("walkers")
-
-NAMED_CHECKPOINTS = ("best", "last")
-RENDER_MODES = ("rgb_array", "human")
+from walkers.training.playback import evaluate
 
 
-def _check(cfg: DictConfig) -> None:
-    if cfg.render not in RENDER_MODES:
-        raise ConfigError(f"render={cfg.render!r} is not allowed: must be one of rgb_array, human")
-    for key in ("episodes", "video_episodes"):
-        if not (isinstance(cfg[key], int) and cfg[key] > 0):
-            raise ConfigError(f"{key}={cfg[key]!r} is not allowed: must be an integer > 0")
-    if cfg.checkpoint in NAMED_CHECKPOINTS and not cfg.run_id:
-        raise ConfigError(
-            f"checkpoint={cfg.checkpoint} needs run_id=<MLflow run id>; "
-            "or pass checkpoint=<path to a .pt file>"
-        )
-
-
-def fetch_checkpoint(cfg: DictConfig, client) -> Path:
-    """The local path of the checkpoint ``cfg`` names (downloaded from the run if named)."""
-    if cfg.checkpoint not in NAMED_CHECKPOINTS:
-        path = Path(cfg.checkpoint)
-        if not path.is_file():
-            raise ConfigError(
-                f"checkpoint={cfg.checkpoint!r} is not allowed: must be best, last "
-                "or the path of an existing .pt file"
-            )
-        return path
-    return tracking.download_checkpoint(client, cfg.run_id, f"{cfg.checkpoint}.pt", cfg.work_dir)
-
-
-def evaluate(cfg: DictConfig) -> dict:
-    """Replay the policy; returns ``{"returns": [...], "videos": [paths]}``."""
-    from walkers.train import agent_from_checkpoint  # the one place agents are instantiated
-
-    _check(cfg)
-    client = None
-    if cfg.run_id:
-        client = tracking.connect(cfg.tracking.uri)
-        tracking.require_run(client, cfg.run_id, cfg.tracking.uri)
-    state = checkpoints.load(fetch_checkpoint(cfg, client))
-    env = make_env(state["config"]["env"], shaping=False, render_mode=cfg.render)
-    try:
-        run_cfg, agent = agent_from_checkpoint(state, env, cfg.device)
-        if cfg.target_return is not None:
-            if not hasattr(agent, "target_return"):
-                raise ConfigError(
-                    f"target_return={cfg.target_return!r} is not allowed: the run's algorithm "
-                    f"({run_cfg.algo.name}) is not return-conditioned (only dt is)"
-                )
-            agent.target_return = float(cfg.target_return)
-        seed = cfg.seed if cfg.seed is not None else run_cfg.seed
-        record = cfg.video and cfg.render == "rgb_array"
-        returns, frames, fps = record_episodes(
-            agent,
-            env,
-            eval_start_seeds(seed, cfg.episodes),
-            render_episodes=cfg.video_episodes if record else 0,
-        )
-    finally:
-        env.close()
-    name = cfg.run_id or Path(cfg.checkpoint).stem
-    out = Path(cfg.out) if cfg.out else Path(cfg.work_dir) / "evaluations" / name
-    stem = out / f"{run_cfg.algo.name}-{run_cfg.env.id}-{Path(str(cfg.checkpoint)).stem}"
-    videos = write_videos(frames, stem, fps) if frames else []
-    summary = {
-        "checkpoint": str(cfg.checkpoint),
-        "episodes": cfg.episodes,
-        "seed": seed,
-        "return_mean": float(returns.mean()),
-        "return_std": float(returns.std()),
-        "returns": returns.tolist(),
-    }
-    out.mkdir(parents=True, exist_ok=True)
-    summary_file = stem.with_suffix(".json")
-    summary_file.write_text(json.dumps(summary, indent=2))
-    if client is not None and cfg.log_to_run:
-        run = tracking.Tracker.attach(client, cfg.run_id, Path(cfg.work_dir) / "spool")
-        for path in [*videos, summary_file]:
-            run.log_artifact(path, "evaluations")
-    return {**summary, "videos": videos}
-
-
-@hydra.main(config_path="../conf", config_name="evaluate")
+@hydra.main(config_path=str(CONF_DIR), config_name="evaluate")
 def main(cfg: DictConfig) -> None:
     result = or_exit(evaluate, cfg)
     print(

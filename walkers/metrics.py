@@ -1,7 +1,7 @@
 """The run-summary metrics an Optuna sweep may optimize, and which way is better for each.
 
 A sweep's direction follows its ``optimized_metric`` through this one table
-(:mod:`walkers.sweeper`), so no study can reward slowness by maximizing
+(:mod:`walkers.tuning.sweeper`), so no study can reward slowness by maximizing
 ``final/steps_to_threshold``.
 """
 

@@ -3,17 +3,14 @@
 TD3 (Fujimoto et al. 2018) is this core with ``num_critics=2`` (clipped double-Q),
 ``policy_noise > 0`` (target policy smoothing) and ``policy_delay=2`` (delayed actor and target
 updates). DDPG as the TD3 paper's "our DDPG" is the same core with one critic, no smoothing and
-no delay. The update in :meth:`ActorCritic.update` follows Algorithm 1 of the TD3 paper line by
-line.
+no delay. :meth:`ActorCritic.update` follows Algorithm 1 of the TD3 paper line by line.
 
-``population=K`` trains K independent seeds (``seed, seed + 1, ...``) in one agent: actors and
-critics are ensembles with a leading member dimension (one batched matmul per layer for all),
-each member has its own replay buffer, exploration noise and RNG, and the losses are sums of
-per-member losses, so each member's gradient is its own. Adam is elementwise, so one optimizer
-keeps members independent; a member whose loss is NaN/inf has its gradients zeroed for that
-update (the others step normally). :meth:`ActorCritic.member_state_dict` cuts one member out as
-an ordinary single-agent checkpoint. With ``population=1`` (the default) tensors carry no member
-dimension and nothing changes.
+Every network is an ensemble with a leading *member* dimension: a single agent is a population of
+one, ``population=K`` trains K independent seeds (``seed, seed + 1, ...``) with one batched
+matmul a layer for all of them. Each member has its own replay buffer, exploration noise and RNG
+(:class:`Member`); losses are sums of per-member losses, so each member's gradient is its own,
+and Adam, being elementwise, keeps members independent under one optimizer. Cutting a member out
+as a single agent and loading it back is :mod:`walkers.agents.population`.
 """
 
 from __future__ import annotations
@@ -21,66 +18,41 @@ from __future__ import annotations
 import copy
 import logging
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 
+from walkers.agents import population as members_io
 from walkers.agents.base import Agent, Transition, resolve_device
-from walkers.agents.health import NonFiniteGuard
-from walkers.buffers import Batch, ReplayBuffer
-from walkers.nn import Actor, EnsembleActor, make_critic, soft_update
+from walkers.agents.health import NonFiniteGuard, guarded_step
+from walkers.agents.networks import EnsembleActor, make_critic, soft_update
+from walkers.agents.noise import NOISE_TYPES, GaussianNoise
+from walkers.data.replay import Batch, ReplayBuffer
 from walkers.seeding import numpy_rng, stream_seeds
 
 log = logging.getLogger("walkers")
 
 
-class GaussianNoise:
-    """i.i.d. N(0, sigma) exploration noise."""
+@dataclass
+class Member:
+    """What one member (one seed) has of its own besides its slice of the networks."""
 
-    def __init__(self, sigma: float, size: int, rng: np.random.Generator):
-        self.sigma, self.size, self.rng = sigma, size, rng
+    rng: np.random.Generator  # uniform warm-up actions and exploration noise
+    noise: GaussianNoise
+    buffer: ReplayBuffer
 
-    def sample(self) -> np.ndarray:
-        return self.rng.normal(0.0, self.sigma, self.size)
-
-    def reset(self) -> None:
-        pass
-
-    def state_dict(self) -> dict:
-        return {}
-
-    def load_state_dict(self, state: dict) -> None:
-        pass
-
-
-class OrnsteinUhlenbeckNoise(GaussianNoise):
-    """Temporally correlated noise x <- x + theta (0 - x) dt + sigma sqrt(dt) N(0, 1) (DDPG paper).
-
-    Reset to zero at the start of every episode.
-    """
-
-    def __init__(self, sigma, size, rng, theta: float = 0.15, dt: float = 1e-2):
-        super().__init__(sigma, size, rng)
-        self.theta, self.dt = theta, dt
-        self.x = np.zeros(size)
-
-    def sample(self) -> np.ndarray:
-        noise = self.rng.normal(0.0, 1.0, self.size)
-        self.x = self.x - self.theta * self.x * self.dt + self.sigma * np.sqrt(self.dt) * noise
-        return self.x
-
-    def reset(self) -> None:
-        self.x = np.zeros(self.size)
-
-    def state_dict(self) -> dict:
-        return {"x": self.x.copy()}
+    def state_dict(self, with_buffer: bool) -> dict:
+        return {
+            "rng": self.rng.bit_generator.state,
+            "noise": self.noise.state_dict(),
+            "buffer": self.buffer.state_dict(with_data=with_buffer),
+        }
 
     def load_state_dict(self, state: dict) -> None:
-        self.x = state["x"].copy()
-
-
-NOISE_TYPES = {"gaussian": GaussianNoise, "ou": OrnsteinUhlenbeckNoise}
-ADAM_MOMENTS = ("exp_avg", "exp_avg_sq")
+        self.rng.bit_generator.state = state["rng"]
+        self.noise.load_state_dict(state["noise"])
+        self.buffer.load_state_dict(state["buffer"])
 
 
 class ActorCritic(Agent):
@@ -119,32 +91,19 @@ class ActorCritic(Agent):
         self.device = resolve_device(device)
         self.batch_size, self.learning_starts = int(batch_size), int(learning_starts)
         self.gamma, self.tau = gamma, tau
-        self.policy_noise, self.noise_clip, self.policy_delay = (
-            policy_noise,
-            noise_clip,
-            policy_delay,
-        )
-
+        self.policy_noise, self.noise_clip = policy_noise, noise_clip
+        self.policy_delay = policy_delay
+        self.population, self.num_critics = int(population), num_critics
         self.action_low = np.asarray(action_low, dtype=np.float32)
         self.action_high = np.asarray(action_high, dtype=np.float32)
         act_dim = len(self.action_low)
-        self.population, self.num_critics = int(population), num_critics
-        seeds = [seed + i for i in range(self.population)]
-        self.rngs = [numpy_rng(s, "exploration") for s in seeds]  # one per member
-        self.rng = self.rngs[0]
-        half_range = (self.action_high - self.action_low) / 2
-        self.noises = [NOISE_TYPES[noise_type](exploration_noise, act_dim, r) for r in self.rngs]
-        self.noise = self.noises[0]
-        self.noise_scale = half_range  # noise std is given as a fraction of the half-range
+        # exploration noise std is a fraction of the action half-range
+        self.noise_scale = (self.action_high - self.action_low) / 2
 
         torch.manual_seed(seed)
-        if self.population == 1:
-            actor = Actor(obs_dim, act_dim, hidden_sizes, action_low, action_high)
-        else:
-            actor = EnsembleActor(
-                self.population, obs_dim, act_dim, hidden_sizes, action_low, action_high
-            )
-        self.actor = actor.to(self.device)
+        self.actor = EnsembleActor(
+            self.population, obs_dim, act_dim, hidden_sizes, action_low, action_high
+        ).to(self.device)
         critic_hidden = hidden_sizes if critic_hidden_sizes is None else critic_hidden_sizes
         self.critic = make_critic(
             critic_architecture, obs_dim, act_dim, critic_hidden, num_critics * self.population
@@ -160,19 +119,24 @@ class ActorCritic(Agent):
         self.low_t = torch.as_tensor(self.action_low, device=self.device)
         self.high_t = torch.as_tensor(self.action_high, device=self.device)
 
-        self.buffers = [
-            ReplayBuffer(buffer_size, obs_dim, act_dim, self.device, stream_seeds(s, "replay")[0])
-            for s in seeds
-        ]
-        self.buffer = self.buffers[0]
+        self.members = []
+        for member_seed in range(seed, seed + self.population):
+            rng = numpy_rng(member_seed, "exploration")
+            replay_seed = stream_seeds(member_seed, "replay")[0]
+            self.members.append(
+                Member(
+                    rng,
+                    NOISE_TYPES[noise_type](exploration_noise, act_dim, rng),
+                    ReplayBuffer(buffer_size, obs_dim, act_dim, self.device, replay_seed),
+                )
+            )
         self.steps = 0  # transitions observed (per member)
         self.num_updates = 0  # critic updates done
         # Uniform random actions while steps < random_until, no updates while steps < update_after:
         # both learning_starts, unless a run resumed without its replay buffer refills it.
         self.random_until = self.update_after = self.learning_starts
         self.refilled_at: int | None = None  # the step a resume without the buffer refilled from
-        shape = () if self.population == 1 else (self.population,)
-        self.guard = NonFiniteGuard(self.device, shape)
+        self.guard = NonFiniteGuard(self.device, (self.population,))
         self._critic_loss, self._actor_loss = self.critic_loss, self.actor_loss
         if compile:
             self._compile_losses()
@@ -186,86 +150,70 @@ class ActorCritic(Agent):
         self._critic_loss = torch.compile(self.critic_loss, mode=mode)
         self._actor_loss = torch.compile(self.actor_loss, mode=mode)
 
-    # --- acting -------------------------------------------------------------------------------
-    def act(self, obs: np.ndarray, explore: bool) -> np.ndarray:
-        if explore and self.steps < self.random_until:  # uniform random warm-up
-            return self.rng.uniform(self.action_low, self.action_high).astype(np.float32)
-        with torch.no_grad():
-            obs_t = torch.as_tensor(obs, dtype=torch.float32, device=self.device)
-            action = self.actor(obs_t.unsqueeze(0))[0].cpu().numpy()
-        if explore:
-            action = action + self.noise.sample() * self.noise_scale
-            action = np.clip(action, self.action_low, self.action_high)
-        return action.astype(np.float32)
+    @property
+    def buffer(self) -> ReplayBuffer:
+        """A single agent's replay buffer (member 0's in a population)."""
+        return self.members[0].buffer
 
-    def observe(self, t: Transition) -> None:
-        self.buffer.add(t.obs, t.action, t.reward, t.next_obs, t.terminated, t.episode_over)
-        self.steps += 1
-        if t.episode_over:
-            self.noise.reset()
-
-    # --- a population: one observation and one transition per member, in member order -------
+    # --- acting: one observation and one transition per member, in member order --------------
     def act_population(self, obs: np.ndarray, explore: bool) -> np.ndarray:
         """``(K, act_dim)`` actions for ``(K, obs_dim)`` observations."""
-        if explore and self.steps < self.random_until:
-            uniform = [r.uniform(self.action_low, self.action_high) for r in self.rngs]
+        if explore and self.steps < self.random_until:  # uniform random warm-up
+            uniform = [m.rng.uniform(self.action_low, self.action_high) for m in self.members]
             return np.stack(uniform).astype(np.float32)
         with torch.no_grad():
             obs_t = torch.as_tensor(obs, dtype=torch.float32, device=self.device)
             actions = self.actor(obs_t.unsqueeze(1))[:, 0].cpu().numpy()
         if explore:
-            noise = np.stack([n.sample() for n in self.noises]) * self.noise_scale
+            noise = np.stack([m.noise.sample() for m in self.members]) * self.noise_scale
             actions = np.clip(actions + noise, self.action_low, self.action_high)
         return actions.astype(np.float32)
 
-    def observe_population(self, transitions: list[Transition]) -> None:
-        for buffer, noise, t in zip(self.buffers, self.noises, transitions, strict=True):
-            buffer.add(t.obs, t.action, t.reward, t.next_obs, t.terminated, t.episode_over)
+    def observe_population(self, transitions: Sequence[Transition]) -> None:
+        for member, t in zip(self.members, transitions, strict=True):
+            member.buffer.add(t.obs, t.action, t.reward, t.next_obs, t.terminated, t.episode_over)
             if t.episode_over:
-                noise.reset()
+                member.noise.reset()
         self.steps += 1
 
-    def member_policy(self, i: int) -> MemberAgent:
-        """Member ``i`` as an agent of its own (evaluation rollouts, its checkpoints)."""
-        return MemberAgent(self, i)
+    def act(self, obs: np.ndarray, explore: bool) -> np.ndarray:
+        return self.act_population(obs[None], explore)[0]
 
-    # --- learning -----------------------------------------------------------------------------
-    def _sample(self) -> Batch:
-        """A batch: ``(batch, ...)`` tensors, or ``(K, batch, ...)`` (one per member) for K > 1."""
-        if self.population == 1:
-            return self.buffer.sample(self.batch_size)
-        batches = [buffer.sample(self.batch_size) for buffer in self.buffers]
-        return Batch(*(torch.stack(field) for field in zip(*batches, strict=True)))
+    def observe(self, t: Transition) -> None:
+        self.observe_population([t])
 
-    def _per_critic(self, x: torch.Tensor) -> torch.Tensor:
-        """Each member's inputs for each of its critics: ``(K, B, d)`` -> ``(K * C, B, d)``."""
-        return x if x.dim() == 2 else x.repeat_interleave(self.num_critics, dim=0)
+    # --- learning (TD3 paper, Algorithm 1) ------------------------------------------------------
+    def update(self) -> dict[str, torch.Tensor]:
+        if self.steps < self.update_after or len(self.buffer) < self.batch_size:
+            return {}
+        self.num_updates += 1
+        b = self.sample()  # a mini-batch of N transitions (s, a, r, s', d) per member
 
-    def _per_member(self, x: torch.Tensor) -> torch.Tensor:
-        """A ``(K,)`` diagnostic; a scalar for a single agent. A copy: CUDA graphs reuse outputs."""
-        return (x.detach()[0] if self.population == 1 else x.detach()).clone()
+        # Critic: y = r + gamma (1 - d) min_j Q'_j(s', a~);  theta_i <- argmin N^-1 sum (y - Q_i)^2
+        smoothing_noise = torch.randn_like(b.action) if self.policy_noise > 0 else None
+        critic_loss, q_mean = self._critic_loss(b, smoothing_noise)
+        critic_bad = guarded_step(self.critic_optimizer, critic_loss, self.num_critics)
+        self.guard.record(critic_bad)
+        metrics = {"loss/critic": _logged(critic_loss), "train/q_mean": _logged(q_mean)}
 
-    def _skip_bad_members(self, optimizer, bad: torch.Tensor, copies: int) -> None:
-        """Make the next ``optimizer.step()`` skip members whose ``bad`` is 1, without a sync.
-
-        A single agent: fused Adam skips its whole step (``found_inf``). A population: the bad
-        members' gradients are zeroed (NaN included) and the step is skipped only if all are bad.
-        ``copies``: parameter members per agent member (the critics per member).
-        """
-        if self.population == 1:
-            optimizer.found_inf = bad[0]
-            return
-        optimizer.found_inf = bad.min()
-        skip = (bad > 0).repeat_interleave(copies).view(-1, 1, 1)
-        for group in optimizer.param_groups:
-            for param in group["params"]:
-                if param.grad is not None:
-                    param.grad.masked_fill_(skip, 0.0)
+        # Every d updates: the deterministic policy gradient on Q_1, then the soft target updates
+        # phi' <- tau phi + (1 - tau) phi', theta' <- tau theta + (1 - tau) theta'.
+        if self.num_updates % self.policy_delay == 0:
+            self.critic.requires_grad_(False)  # the actor's gradient only: no critic weight grads
+            actor_loss = self._actor_loss(b.obs)
+            self.critic.requires_grad_(True)
+            # critic_bad, not the critic loss: under CUDA graphs the actor-loss run has already
+            # reclaimed the critic-loss run's outputs.
+            guarded_step(self.actor_optimizer, actor_loss, 1, also_bad=critic_bad)
+            soft_update(self.critic_target, self.critic, self.tau)
+            soft_update(self.actor_target, self.actor, self.tau)
+            metrics["loss/actor"] = _logged(actor_loss)
+        return metrics | self.guard.metrics()
 
     def critic_loss(
         self, b: Batch, smoothing_noise: torch.Tensor | None
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Per-member critic loss ``(K,)`` and mean Q ``(K,)`` (TD3 paper, Algorithm 1).
+        """Per-member critic loss ``(K,)`` (the sum of its critics' MSEs) and mean Q ``(K,)``.
 
         Every Q_i regresses onto y = r + gamma * (1 - terminated) * min_j Q'_j(s', a~) with
         a~ = clip(pi'(s') + clip(sigma * eps, -c, c), low, high), eps ~ N(0, 1) given as
@@ -275,14 +223,15 @@ class ActorCritic(Agent):
         with torch.no_grad():
             next_action = self.actor_target(b.next_obs)
             if smoothing_noise is not None:
-                eps = smoothing_noise * self.policy_noise
-                eps = eps.clamp(-self.noise_clip, self.noise_clip) * self.actor.action_scale
-                next_action = (next_action + eps).clamp(self.low_t, self.high_t)
+                eps = (smoothing_noise * self.policy_noise).clamp(-self.noise_clip, self.noise_clip)
+                next_action = (next_action + eps * self.actor.action_scale).clamp(
+                    self.low_t, self.high_t
+                )
             next_q = self.critic_target(self._per_critic(b.next_obs), self._per_critic(next_action))
-            next_q = next_q.unflatten(0, (K, C)).min(dim=1).values  # (K, batch)
-            target = b.reward + self.gamma * (1.0 - b.terminated) * next_q
+            next_q = next_q.unflatten(0, (K, C)).min(dim=1).values  # clipped double-Q: (K, N)
+            y = b.reward + self.gamma * (1.0 - b.terminated) * next_q
         q = self.critic(self._per_critic(b.obs), self._per_critic(b.action)).unflatten(0, (K, C))
-        member_loss = (q - target.unsqueeze(1)).pow(2).mean(dim=2).sum(dim=1)
+        member_loss = (q - y.unsqueeze(1)).pow(2).mean(dim=2).sum(dim=1)
         return member_loss, q.detach().mean(dim=(1, 2))
 
     def actor_loss(self, obs: torch.Tensor) -> torch.Tensor:
@@ -290,86 +239,36 @@ class ActorCritic(Agent):
         q_pi = self.critic(obs, self.actor(obs), members=slice(0, None, self.num_critics))
         return -q_pi.mean(dim=-1)
 
-    def update(self) -> dict[str, torch.Tensor]:
-        if self.steps < self.update_after or len(self.buffer) < self.batch_size:
-            return {}
-        self.num_updates += 1
-        b = self._sample()
+    def sample(self) -> Batch:
+        """One mini-batch per member, stacked: ``(K, batch, ...)`` tensors."""
+        batches = [m.buffer.sample(self.batch_size) for m in self.members]
+        return Batch(*(torch.stack(field) for field in zip(*batches, strict=True)))
 
-        smoothing_noise = torch.randn_like(b.action) if self.policy_noise > 0 else None
-        member_critic_loss, q_mean = self._critic_loss(b, smoothing_noise)
-        self.critic_optimizer.zero_grad(set_to_none=True)
-        member_critic_loss.sum().backward()
-        # NaN/inf guard without a host sync (see _skip_bad_members).
-        critic_bad = NonFiniteGuard.bad_members(member_critic_loss)
-        self._skip_bad_members(self.critic_optimizer, critic_bad, copies=self.num_critics)
-        self.critic_optimizer.step()
-        self.guard.record(self._per_member(critic_bad))
-        metrics = {
-            "loss/critic": self._per_member(member_critic_loss),
-            "train/q_mean": self._per_member(q_mean),
-        }
+    def _per_critic(self, x: torch.Tensor) -> torch.Tensor:
+        """Each member's inputs once per critic: ``(K, N, d)`` -> ``(K * C, N, d)`` (a view for
+        a single agent)."""
+        return x.unsqueeze(1).expand(-1, self.num_critics, -1, -1).flatten(0, 1)
 
-        # Delayed policy update: maximize Q_1(s, pi(s)), then move the targets.
-        if self.num_updates % self.policy_delay == 0:
-            self.critic.requires_grad_(False)  # the actor's gradient only: no critic weight grads
-            member_actor_loss = self._actor_loss(b.obs)
-            self.critic.requires_grad_(True)
-            self.actor_optimizer.zero_grad(set_to_none=True)
-            member_actor_loss.sum().backward()
-            # critic_bad, not the critic loss: under CUDA graphs the actor-loss run has already
-            # reclaimed the critic-loss run's outputs.
-            bad = torch.maximum(critic_bad, NonFiniteGuard.bad_members(member_actor_loss))
-            self._skip_bad_members(self.actor_optimizer, bad, copies=1)
-            self.actor_optimizer.step()
-            soft_update(self.critic_target, self.critic, self.tau)
-            soft_update(self.actor_target, self.actor, self.tau)
-            metrics["loss/actor"] = self._per_member(member_actor_loss)
-        return metrics | self.guard.metrics()
-
-    # --- checkpoints --------------------------------------------------------------------------
+    # --- checkpoints: a single agent's is member 0 cut out, a population's its members' --------
     def state_dict(self, with_buffer: bool = False) -> dict:
+        if self.population == 1:
+            return members_io.member_state_dict(self, 0, with_buffer)
         return {
-            "actor": self.actor.state_dict(),
-            "critic": self.critic.state_dict(),
-            "actor_target": self.actor_target.state_dict(),
-            "critic_target": self.critic_target.state_dict(),
-            "actor_optimizer": self.actor_optimizer.state_dict(),
-            "critic_optimizer": self.critic_optimizer.state_dict(),
-            "steps": self.steps,
-            "num_updates": self.num_updates,
-            "random_until": self.random_until,
-            "update_after": self.update_after,
-            "rng": self.rng.bit_generator.state,
-            "noise": self.noise.state_dict(),
-            "buffer": self.buffer.state_dict(with_data=with_buffer),
-            "guard": self.guard.state_dict(),
+            "members": [
+                members_io.member_state_dict(self, i, with_buffer) for i in range(self.population)
+            ]
         }
 
     def load_state_dict(self, state: dict) -> None:
-        for name in ("actor", "critic", "actor_target", "critic_target"):
-            getattr(self, name).load_state_dict(state[name])
-        self.actor_optimizer.load_state_dict(state["actor_optimizer"])
-        self.critic_optimizer.load_state_dict(state["critic_optimizer"])
-        self._load_counters(state)
-        self.rng.bit_generator.state = state["rng"]
-        self.noise.load_state_dict(state["noise"])
-        self.buffer.load_state_dict(state["buffer"])
-        if "guard" in state:
-            self.guard.load_state_dict(state["guard"])
-        self._refill_if_lost(state["buffer"])
+        for i, member_state in enumerate(state.get("members", [state])):
+            members_io.load_member_state_dict(self, i, member_state)
 
-    def resume_notes(self) -> dict[str, str]:
-        if self.refilled_at is None:
-            return {}
-        return {"walkers.buffer_refill": f"steps {self.refilled_at}-{self.update_after}"}
-
-    def _load_counters(self, state: dict) -> None:
+    def load_counters(self, state: dict) -> None:
         self.steps, self.num_updates = state["steps"], state["num_updates"]
         self.random_until = state.get("random_until", self.learning_starts)
         self.update_after = state.get("update_after", self.learning_starts)
 
-    def _refill_if_lost(self, buffer_state: dict) -> None:
+    def refill_if_lost(self, buffer_state: dict) -> None:
         """A checkpoint without its transitions: refill the buffer before updating again.
 
         Updating at once would fit the critics to the few transitions collected since (silently
@@ -395,125 +294,23 @@ class ActorCritic(Agent):
             self.update_after,
         )
 
-    def member_state_dict(self, i: int, with_buffer: bool = False) -> dict:
-        """Member ``i`` of a population as a single agent's :meth:`state_dict`.
-
-        Networks, targets, Adam moments, counters, RNG, noise, buffer and guard of that member
-        only, in the single-agent layout: a member's checkpoint loads into an ordinary agent
-        (``walkers.evaluate``, ``walkers.collect``, or ``resume=`` to continue it alone), or back
-        into a population (:meth:`load_member_state_dict`).
-        """
-        critic_cut = self._critic_slice(i)
-
-        def critic_state(module) -> dict:
-            return {k: v[critic_cut].clone() for k, v in module.state_dict().items()}
-
-        def optimizer_state(optimizer, cut) -> dict:
-            state = optimizer.state_dict()
-            for index, moments in list(state["state"].items()):
-                # a new dict: state_dict() shares the live tensors
-                state["state"][index] = moments | {key: cut(moments[key]) for key in ADAM_MOMENTS}
-            return state
-
-        def actor_cut(x):  # EnsembleLinear weight (K, in, out) -> Linear (out, in)
-            return x[i].T.contiguous() if x.shape[1] != 1 else x[i, 0].clone()
-
-        return {
-            "actor": self.actor.member_state(i),
-            "critic": critic_state(self.critic),
-            "actor_target": self.actor_target.member_state(i),
-            "critic_target": critic_state(self.critic_target),
-            "actor_optimizer": optimizer_state(self.actor_optimizer, actor_cut),
-            "critic_optimizer": optimizer_state(self.critic_optimizer, lambda x: x[critic_cut]),
-            "steps": self.steps,
-            "num_updates": self.num_updates,
-            "random_until": self.random_until,
-            "update_after": self.update_after,
-            "rng": self.rngs[i].bit_generator.state,
-            "noise": self.noises[i].state_dict(),
-            "buffer": self.buffers[i].state_dict(with_data=with_buffer),
-            "guard": {
-                "skipped": self.guard.skipped[i].item(),
-                "in_a_row": self.guard.in_a_row[i].item(),
-            },
-        }
-
-    @torch.no_grad()
-    def load_member_state_dict(self, i: int, state: dict) -> None:
-        """Load a single agent's :meth:`state_dict` into member ``i`` of this population.
-
-        The inverse of :meth:`member_state_dict`: K runs resumed together continue as one
-        population (``resume=[id,id,...]``). Counters (env steps, updates, Adam's step count)
-        are shared, so every member must be at the same update (the caller checks); they are
-        taken from the last member loaded.
-        """
-        critic_cut = self._critic_slice(i)
-        for name in ("actor", "actor_target"):
-            getattr(self, name).load_member_state(i, state[name])
-        for name in ("critic", "critic_target"):
-            for key, value in getattr(self, name).state_dict().items():
-                value[critic_cut] = state[name][key]
-
-        def load_moments(optimizer, member: dict, put) -> None:
-            params = [p for group in optimizer.param_groups for p in group["params"]]
-            for index, param in enumerate(params):  # the indices of optimizer.state_dict()
-                if index not in member["state"]:
-                    continue  # the member never stepped this parameter
-                saved, live = member["state"][index], optimizer.state[param]
-                if not live:  # a fresh optimizer: create its state as its first step would
-                    live["step"] = saved["step"].clone().to(param.device)
-                    live |= {key: torch.zeros_like(param) for key in ADAM_MOMENTS}
-                for key in ADAM_MOMENTS:
-                    put(live[key], saved[key].to(param.device))
-                live["step"].copy_(saved["step"])
-
-        def put_actor(live, saved):  # Linear (out, in) -> EnsembleLinear member (in, out)
-            live[i] = saved.T if saved.dim() == 2 else saved
-
-        def put_critic(live, saved):
-            live[critic_cut] = saved
-
-        load_moments(self.actor_optimizer, state["actor_optimizer"], put_actor)
-        load_moments(self.critic_optimizer, state["critic_optimizer"], put_critic)
-        self._load_counters(state)
-        self.rngs[i].bit_generator.state = state["rng"]
-        self.noises[i].load_state_dict(state["noise"])
-        self.buffers[i].load_state_dict(state["buffer"])
-        guard = state.get("guard", {"skipped": 0, "in_a_row": 0})  # older checkpoints: none
-        self.guard.skipped[i], self.guard.in_a_row[i] = guard["skipped"], guard["in_a_row"]
-        self._refill_if_lost(state["buffer"])
-
-    def _critic_slice(self, i: int) -> slice:
-        """Member ``i``'s critics in the ``K * C`` critic ensemble."""
-        return slice(i * self.num_critics, (i + 1) * self.num_critics)
-
-
-class MemberAgent(Agent):
-    """Member ``index`` of a population seen as an agent of its own: it acts greedily
-    (evaluations) and checkpoints as a single agent; the population does the learning."""
-
-    def __init__(self, population: ActorCritic, index: int):
-        self.population, self.index = population, index
-        self.members = slice(index, index + 1)
-        self.device = population.device
-
-    def act(self, obs: np.ndarray, explore: bool = False) -> np.ndarray:
-        with torch.no_grad():
-            obs_t = torch.as_tensor(obs, dtype=torch.float32, device=self.device)
-            action = self.population.actor(obs_t.view(1, 1, -1), members=self.members)[0, 0]
-        return action.cpu().numpy().astype(np.float32)
-
-    def observe(self, transition: Transition) -> None:
-        raise NotImplementedError("a population member observes through the population")
-
-    def update(self) -> dict[str, torch.Tensor]:
-        raise NotImplementedError("a population member learns through the population")
-
-    def state_dict(self, with_buffer: bool = False) -> dict:
-        return self.population.member_state_dict(self.index, with_buffer)
-
-    def load_state_dict(self, state: dict) -> None:
-        self.population.load_member_state_dict(self.index, state)
-
     def resume_notes(self) -> dict[str, str]:
-        return self.population.resume_notes()
+        if self.refilled_at is None:
+            return {}
+        return {"walkers.buffer_refill": f"steps {self.refilled_at}-{self.update_after}"}
+
+    # --- a population's members one at a time (walkers.agents.population) -------------------
+    def member_policy(self, i: int) -> members_io.MemberAgent:
+        """Member ``i`` as an agent of its own (evaluation rollouts, its checkpoints)."""
+        return members_io.MemberAgent(self, i)
+
+    def member_state_dict(self, i: int, with_buffer: bool = False) -> dict:
+        return members_io.member_state_dict(self, i, with_buffer)
+
+    def load_member_state_dict(self, i: int, state: dict) -> None:
+        members_io.load_member_state_dict(self, i, state)
+
+
+def _logged(x: torch.Tensor) -> torch.Tensor:
+    """A per-member ``(K,)`` diagnostic to log: a copy, as CUDA graphs reuse their outputs."""
+    return x.detach().clone()

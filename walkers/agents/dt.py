@@ -24,9 +24,9 @@ import torch
 
 from walkers.agents.base import Agent, Transition, resolve_device
 from walkers.agents.health import NonFiniteGuard
-from walkers.buffers import SequenceSampler
+from walkers.agents.transformer import DecisionTransformerModel
+from walkers.data.sequences import SequenceSampler
 from walkers.seeding import stream_seeds
-from walkers.transformer import DecisionTransformerModel
 
 
 class DecisionTransformer(Agent):
@@ -40,7 +40,7 @@ class DecisionTransformer(Agent):
         action_low: Sequence[float],
         action_high: Sequence[float],
         *,
-        dataset=None,  # walkers.datasets.OfflineData; None when only restoring a policy to act
+        dataset=None,  # walkers.data.datasets.OfflineData; None when only restoring a policy to act
         context_length: int = 20,
         embed_dim: int = 128,
         n_layers: int = 3,

@@ -3,7 +3,7 @@
 An update whose loss is not finite is skipped (the caller makes the optimizer step a no-op) and
 counted. Counting happens in device tensors, so the guard adds no host-device sync to the hot
 loop; the trainer reads ``health/*`` only when it logs, and ends a run whose updates have all been
-skipped for too long (:class:`walkers.trainer.TrainingDiverged`).
+skipped for too long (:class:`walkers.training.bookkeeping.TrainingDiverged`).
 """
 
 from __future__ import annotations
@@ -48,6 +48,42 @@ class NonFiniteGuard:
     def state_dict(self) -> dict:
         return {"skipped": self.skipped.tolist(), "in_a_row": self.in_a_row.tolist()}
 
+    def member_state_dict(self, i: int) -> dict:
+        """Member ``i``'s counters, as a population of one's :meth:`state_dict`."""
+        return {"skipped": [self.skipped[i].item()], "in_a_row": [self.in_a_row[i].item()]}
+
+    def load_member_state_dict(self, i: int, state: dict) -> None:
+        (self.skipped[i],), (self.in_a_row[i],) = state["skipped"], state["in_a_row"]
+
     def load_state_dict(self, state: dict) -> None:
         self.skipped.copy_(torch.as_tensor(state["skipped"]))
         self.in_a_row.copy_(torch.as_tensor(state["in_a_row"]))
+
+
+def guarded_step(
+    optimizer: torch.optim.Optimizer,
+    member_loss: torch.Tensor,
+    copies: int,
+    also_bad: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """Minimize the sum of per-member losses ``(K,)``, skipping members whose loss is NaN/inf.
+
+    No host sync: a bad member's gradients are zeroed (NaN included), and fused Adam's
+    ``found_inf`` skips the whole step when every member is bad (for a single agent: whenever
+    its loss is). ``copies``: parameter members per agent member (e.g. the critics per member);
+    ``also_bad``: members to skip for another reason. Returns the skipped members ``(K,)``.
+    """
+    optimizer.zero_grad(set_to_none=True)
+    member_loss.sum().backward()
+    bad = NonFiniteGuard.bad_members(member_loss)
+    if also_bad is not None:
+        bad = torch.maximum(bad, also_bad)
+    optimizer.found_inf = bad.min()
+    if bad.numel() > 1:  # one agent: found_inf skips the step already
+        skip = (bad > 0).repeat_interleave(copies).view(-1, 1, 1)
+        for group in optimizer.param_groups:
+            for param in group["params"]:
+                if param.grad is not None:
+                    param.grad.masked_fill_(skip, 0.0)
+    optimizer.step()
+    return bad

@@ -1,9 +1,11 @@
-"""Networks: MLPs, a tanh actor scaled to the action bounds, and critic ensembles.
+"""Networks: MLPs, and the deterministic actors and critics of DDPG/TD3 as *ensembles*.
 
-Critics are stored as *ensembles*: every layer holds the weights of all members stacked along a
-leading dimension and runs them with one batched matmul. TD3's twin critics are an ensemble of
-two; DDPG's single critic an ensemble of one. Members share no parameters, so optimizing the
-ensemble with an elementwise optimizer (Adam) trains each member independently.
+Every layer of an ensemble holds the weights of all its members stacked along a leading
+dimension and runs them with one batched matmul. TD3's twin critics are an ensemble of two;
+DDPG's single critic an ensemble of one; a single agent's actor an ensemble of one, a seed
+population's actors an ensemble of K (so a member's weights have one layout everywhere).
+Members share no parameters, so optimizing an ensemble with an elementwise optimizer (Adam)
+trains each member independently.
 """
 
 from __future__ import annotations
@@ -24,21 +26,6 @@ def mlp(in_dim: int, out_dim: int, hidden_sizes: Sequence[int]) -> nn.Sequential
         in_dim = width
     layers.append(nn.Linear(in_dim, out_dim))
     return nn.Sequential(*layers)
-
-
-class Actor(nn.Module):
-    """Deterministic policy: MLP -> tanh -> affine map onto [action_low, action_high]."""
-
-    def __init__(self, obs_dim, act_dim, hidden_sizes, action_low, action_high):
-        super().__init__()
-        self.net = mlp(obs_dim, act_dim, hidden_sizes)
-        low = torch.as_tensor(action_low, dtype=torch.float32)
-        high = torch.as_tensor(action_high, dtype=torch.float32)
-        self.register_buffer("action_scale", (high - low) / 2)
-        self.register_buffer("action_bias", (high + low) / 2)
-
-    def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        return torch.tanh(self.net(obs)) * self.action_scale + self.action_bias
 
 
 class EnsembleLinear(nn.Module):
@@ -63,10 +50,11 @@ class EnsembleLinear(nn.Module):
 
 
 class EnsembleActor(nn.Module):
-    """``n`` independent deterministic policies (a seed population), one batched matmul a layer.
+    """``n`` independent deterministic policies pi_i(s) = tanh(MLP_i(s)) scaled onto the action
+    bounds, one batched matmul a layer (``n`` = 1 for a single agent, K for a seed population).
 
     Input ``(n, batch, obs)`` (or ``(batch, obs)`` shared); output ``(n, batch, act)``; ``members``
-    selects a subset. Member ``i`` computes exactly what an :class:`Actor` with its weights does.
+    selects a subset.
     """
 
     def __init__(self, n, obs_dim, act_dim, hidden_sizes, action_low, action_high):
@@ -77,29 +65,15 @@ class EnsembleActor(nn.Module):
         )
         low = torch.as_tensor(action_low, dtype=torch.float32)
         high = torch.as_tensor(action_high, dtype=torch.float32)
-        self.register_buffer("action_scale", (high - low) / 2)
-        self.register_buffer("action_bias", (high + low) / 2)
+        # derived from the env, not learned: not part of the state dict
+        self.register_buffer("action_scale", (high - low) / 2, persistent=False)
+        self.register_buffer("action_bias", (high + low) / 2, persistent=False)
 
     def forward(self, obs: torch.Tensor, members: slice = slice(None)) -> torch.Tensor:
         x = obs
         for layer in self.layers[:-1]:
             x = F.relu(layer(x, members))
         return torch.tanh(self.layers[-1](x, members)) * self.action_scale + self.action_bias
-
-    def member_state(self, i: int) -> dict[str, torch.Tensor]:
-        """Member ``i``'s weights as an :class:`Actor` state dict (nn.Linear layout)."""
-        state = {"action_scale": self.action_scale, "action_bias": self.action_bias}
-        for k, layer in enumerate(self.layers):
-            state[f"net.{2 * k}.weight"] = layer.weight[i].T.contiguous()
-            state[f"net.{2 * k}.bias"] = layer.bias[i, 0].clone()
-        return state
-
-    @torch.no_grad()
-    def load_member_state(self, i: int, state: dict[str, torch.Tensor]) -> None:
-        """Member ``i``'s weights from an :class:`Actor` state dict (the inverse of the above)."""
-        for k, layer in enumerate(self.layers):
-            layer.weight[i] = state[f"net.{2 * k}.weight"].T
-            layer.bias[i, 0] = state[f"net.{2 * k}.bias"]
 
 
 class EnsembleLayerNorm(nn.Module):

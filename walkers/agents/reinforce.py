@@ -34,8 +34,8 @@ from torch.distributions import Normal
 
 from walkers.agents.base import Agent, Transition, resolve_device
 from walkers.agents.health import NonFiniteGuard
-from walkers.buffers import EpisodeBuffer
-from walkers.nn import mlp
+from walkers.agents.networks import mlp
+from walkers.data.episodes import EpisodeBuffer
 from walkers.seeding import torch_generator
 
 

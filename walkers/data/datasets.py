@@ -22,7 +22,7 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 
-from walkers.buffers import Episode
+from walkers.data.episodes import Episode
 from walkers.errors import ConfigError
 
 with warnings.catch_warnings():

@@ -32,6 +32,8 @@ KIND_TAG = "walkers.kind"
 #: Run tag naming what the step of a run's metrics counts; runs without it count env steps.
 X_AXIS_TAG = "walkers.x_axis"
 ENV_STEPS, GRADIENT_STEPS = "env_steps", "gradient_steps"
+#: Tag of a run its pruner stopped early (a sweep trial; ``walkers.compare`` leaves it out).
+PRUNED_TAG = "walkers.pruned_at_step"
 
 
 def ui_url(experiment_id: str, run_id: str | None = None, host: str = "http://127.0.0.1:5000"):
@@ -142,18 +144,29 @@ def flatten(d: Mapping, prefix: str = "") -> dict[str, str]:
 
 
 @contextmanager
-def side_run(client: MlflowClient, experiment: str, run_name: str, tags: dict, spool_dir):
-    """A run that records something other than training (a report, a dataset's stats).
-
-    It ends FINISHED when the ``with`` block completes, FAILED when it raises.
-    """
-    tracker = Tracker.start(client, experiment, run_name=run_name, tags=tags, spool_dir=spool_dir)
+def ending(trackers: list[Tracker]):
+    """Every run in ``trackers`` (a list that may grow inside the block) gets its final status
+    on the way out: FINISHED, KILLED (Ctrl-C, or SIGTERM turned into it) or FAILED (anything
+    else). The one place a run's status is set, for training runs, populations, sweeps and
+    side runs alike."""
     status = FAILED
     try:
-        yield tracker
+        yield
         status = FINISHED
+    except KeyboardInterrupt:
+        status = KILLED
+        raise
     finally:
-        tracker.end(status)
+        for tracker in trackers:
+            tracker.end(status)
+
+
+@contextmanager
+def side_run(client: MlflowClient, experiment: str, run_name: str, tags: dict, spool_dir):
+    """A run that records something other than training (a report, a dataset's stats)."""
+    tracker = Tracker.start(client, experiment, run_name=run_name, tags=tags, spool_dir=spool_dir)
+    with ending([tracker]):
+        yield tracker
 
 
 class Tracker:
@@ -163,6 +176,7 @@ class Tracker:
         self.client, self.run_id, self.experiment_id = client, run_id, experiment_id
         self.spool_dir = Path(spool_dir)
         self._pending: list[Metric] = []
+        self.status: str | None = None  # the final status, once end() has set it
 
     @classmethod
     def start(cls, client, experiment: str, run_name: str, tags: dict, spool_dir) -> Tracker:
@@ -236,6 +250,7 @@ class Tracker:
                 for m in self._pending:
                     f.write(json.dumps({"key": m.key, "value": m.value, "step": m.step}) + "\n")
             log.error("%d metrics could not be logged; saved to %s", len(self._pending), spool)
+        self.status = status
         try:
             _with_retries(self.client.set_terminated, self.run_id, status)
         except Exception as e:

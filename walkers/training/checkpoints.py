@@ -1,4 +1,4 @@
-"""Checkpoint files: written atomically, verified on load."""
+"""Checkpoint files: written atomically, verified on load; an agent restored from one."""
 
 from __future__ import annotations
 
@@ -7,8 +7,11 @@ import tempfile
 from pathlib import Path
 
 import torch
+from omegaconf import DictConfig, OmegaConf
 
+from walkers.agents.factory import build_agent
 from walkers.errors import CheckpointError
+from walkers.training.envs import env_spaces
 
 FORMAT_VERSION = 1
 
@@ -47,3 +50,13 @@ def load(path: str | os.PathLike) -> dict:
     if not isinstance(state, dict) or state.get("format_version") != FORMAT_VERSION:
         raise CheckpointError(f"checkpoint {str(path)!r} is not a walkers checkpoint")
     return state
+
+
+def agent_from_checkpoint(state: dict, env, device: str):
+    """The run config stored in a checkpoint and its agent, restored, for acting on ``env``:
+    ``(run config, agent)``."""
+    run_cfg: DictConfig = OmegaConf.create(state["config"])
+    run_cfg.device = device
+    agent = build_agent(run_cfg, env_spaces(env))
+    agent.load_state_dict(state["agent"])
+    return run_cfg, agent

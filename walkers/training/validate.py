@@ -11,13 +11,9 @@ from numbers import Real
 from omegaconf import DictConfig, OmegaConf
 
 from walkers.errors import ConfigError
+from walkers.metrics import METRIC_DIRECTIONS
 
-OPTIMIZABLE_METRICS = (
-    "final/return_mean",
-    "final/return_last10",
-    "final/auc",
-    "final/steps_to_threshold",
-)
+OPTIMIZABLE_METRICS = tuple(METRIC_DIRECTIONS)  # every metric a sweep can optimize
 DEVICES = ("auto", "cpu", "cuda")
 
 

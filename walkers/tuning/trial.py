@@ -1,6 +1,6 @@
 """The job side of an Optuna sweep: report evaluations to the trial, stop when it is pruned.
 
-The sweeper (:mod:`walkers.sweeper`) passes each job its study, storage and trial id as
+The sweeper (:mod:`walkers.tuning.sweeper`) passes each job its study, storage and trial id as
 ``sweep.*`` overrides; the pruner is the job's own ``sweep.pruner`` config (an
 ``optuna.pruners`` class), so a sweep file chooses it and a command line can swap it.
 
@@ -24,8 +24,6 @@ log = logging.getLogger("walkers")
 
 #: Trial user attribute the sweeper reads to tell the trial PRUNED.
 PRUNED_AT = "pruned_at_step"
-#: MLflow tag of a run its pruner stopped early (``walkers.compare`` leaves such runs out).
-PRUNED_TAG = "walkers.pruned_at_step"
 PRUNER_TARGETS = ["optuna.pruners.*"]
 THRESHOLD_PRUNER = "optuna.pruners.ThresholdPruner"
 

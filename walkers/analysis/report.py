@@ -19,11 +19,11 @@ import numpy as np
 matplotlib.use("Agg")  # files only, never a window
 import matplotlib.pyplot as plt  # noqa: E402
 
-from walkers import arms, stats  # noqa: E402
+from walkers.analysis import arms, stats  # noqa: E402
 from walkers.tracking import ENV_STEPS, GRADIENT_STEPS  # noqa: E402
 
 if TYPE_CHECKING:
-    from walkers.compare import AlgoResult, Comparison, PairResult
+    from walkers.analysis.comparison import AlgoResult, Comparison, PairResult
 
 QUANTITY_NAMES = {"score": "final return", "auc": "AUC (rate of learning)"}
 AXIS_NAMES = {ENV_STEPS: "env steps", GRADIENT_STEPS: "gradient steps"}
@@ -240,8 +240,8 @@ def _arms_section(c: Comparison) -> list[str]:
         "## Arms",
         "",
         f"Runs are {how}. An arm is one configuration: runs whose configs differ in anything but "
-        "the seed and keys that cannot change results (`walkers.arms.NOT_THE_EXPERIMENT`) are "
-        "separate arms, never pooled.",
+        "the seed and keys that cannot change results "
+        "(`walkers.analysis.arms.NOT_THE_EXPERIMENT`) are separate arms, never pooled.",
     ]
     if c.splits:
         out += ["", "Split into several arms:", ""] + [f"- {note}" for note in c.splits]

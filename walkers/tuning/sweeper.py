@@ -9,7 +9,8 @@ overrides) with what RL tuning needs and that plugin lacks:
   unknown metric, or a stored study of another metric or direction is refused with one
   ``error:`` line and exit 2 before any study or MLflow run is created.
 - Pruning: every job gets its trial (``sweep.*`` overrides); the trainer reports each evaluation
-  to it and stops when the job's pruner says so (:mod:`walkers.trial`); the trial is told PRUNED.
+  to it and stops when the job's pruner says so (:mod:`walkers.tuning.trial`); the trial is
+  told PRUNED.
 - Resume: ``n_trials`` is the size of the study. Running the same command again continues an
   interrupted study; trials an interrupted sweep left RUNNING are marked FAIL. A rerun with
   ``n_trials`` at or below the trials already done runs nothing and reports the study again.
@@ -46,7 +47,7 @@ from optuna.trial import TrialState
 from walkers import tracking
 from walkers.errors import ConfigError
 from walkers.metrics import MAXIMIZE, MINIMIZE, metric_direction
-from walkers.trial import PRUNED_AT
+from walkers.tuning.trial import PRUNED_AT
 
 log = logging.getLogger("walkers")
 
@@ -273,19 +274,11 @@ class PruningOptunaSweeper(OptunaSweeperImpl):
             print(f"error: {e}", file=sys.stderr)
             sys.exit(2)
         parent = open_parent_run(self.config, study, self.storage)
-        status = tracking.FAILED
-        try:
+        with tracking.ending([parent] if parent is not None else []):
             while (todo := self.n_trials - trials_done(study)) > 0:
                 batch = min(todo, self.n_jobs)
                 self._run_batch(study, batch, space, fixed, fixed_overrides, parent)
             self._report(study, fixed, parent)
-            status = tracking.FINISHED
-        except KeyboardInterrupt:
-            status = tracking.KILLED
-            raise
-        finally:
-            if parent is not None:
-                parent.end(status)
 
     def _run_batch(self, study, size, space, fixed, fixed_overrides, parent) -> None:
         """Ask ``size`` trials, launch them as jobs, tell the study how each ended.

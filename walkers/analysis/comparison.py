@@ -1,0 +1,507 @@
+"""Finished runs in MLflow -> a comparison of arms (``python -m walkers.compare``).
+
+An arm is one configuration, one seed per run (:mod:`walkers.analysis.arms`): runs are grouped
+by their ``algo`` tag, or with ``group_by=<key>[,<key>]`` by the values of those config keys,
+and a group whose runs differ in anything but the seed and keys that cannot change results is
+split into arms named by what differs (``td3 (algo.hidden_sizes=[64, 64])``), never pooled; the
+report lists every split. ``algos=[...]`` filters by algorithm and orders the arms. Only
+comparable runs enter: the chosen env, one budget (``total_steps``), status FINISHED; everything
+else is left out with a note in the report. Offline runs (``algo=dt``) count gradient steps, not
+env steps: they get their own budget and their own learning-curve panel, they are compared with
+the online runs on final return but not on AUC (a rate over different x-axes), and come from
+one dataset, named in the report. Every per-run number comes from the run's logged eval curve
+through the same :func:`walkers.analysis.stats.run_summary` the trainer uses; across seeds the
+statistics are those of Agarwal et al. 2021 (:mod:`walkers.analysis.stats`). Published
+reference figures for the env (``published:`` in ``conf/env/<env>.yaml``) stand beside the
+measured ones, marked as such, for the algorithms in the report.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import re
+from collections import Counter
+from dataclasses import dataclass, field
+from itertools import combinations
+from pathlib import Path
+
+import numpy as np
+from omegaconf import DictConfig
+
+from walkers import tracking
+from walkers.analysis import stats
+from walkers.analysis.arms import Arm, build_arms, parse_group_by, unknown_key_hint
+from walkers.analysis.report import AXIS_NAMES, PUBLISHED_CAVEAT, verdict, write_report
+from walkers.errors import ConfigError
+from walkers.tracking import ENV_STEPS, GRADIENT_STEPS, KIND_TAG
+
+log = logging.getLogger("walkers")
+
+CURVE_METRIC = "eval/return_mean"
+SCORES = ("final/return_mean", "final/return_last10", "final/auc")
+
+
+def x_axis(run) -> str:
+    return run.data.tags.get(tracking.X_AXIS_TAG, ENV_STEPS)
+
+
+def _finite_or_none(x: float) -> float | None:
+    """JSON has no inf/nan: "never reached" and "no CI" become null."""
+    return float(x) if np.isfinite(x) else None
+
+
+@dataclass
+class SeedRun:
+    """One training run as the comparison sees it."""
+
+    run_id: str
+    algo: str
+    seed: str
+    steps: np.ndarray
+    returns: np.ndarray
+    summary: dict[str, float]
+    x_axis: str = ENV_STEPS
+    dataset: str | None = None  # offline runs: what they learned from
+    normalized_score: float | None = None  # offline runs: 0 = random policy, 100 = the dataset's
+
+
+@dataclass
+class AlgoResult:
+    """One arm's results. ``algo`` is the arm's name: the algorithm's when it has one
+    configuration (see :mod:`walkers.analysis.arms`); ``arm`` tells its algorithm and
+    configuration."""
+
+    algo: str
+    runs: list[SeedRun]
+    scores: np.ndarray
+    iqm: tuple[float, float, float]  # point, low, high
+    auc: np.ndarray
+    steps_to_threshold: np.ndarray  # inf where a seed never reached it
+    arm: Arm | None = None
+
+    @property
+    def algorithm(self) -> str:
+        """The algorithm its runs trained (the ``algo`` tag)."""
+        return self.arm.algo if self.arm else self.runs[0].algo
+
+    @property
+    def x_axis(self) -> str:
+        return self.runs[0].x_axis
+
+    @property
+    def dataset(self) -> str | None:
+        return self.runs[0].dataset
+
+    @property
+    def normalized_score_mean(self) -> float | None:
+        """Mean final normalized score over the seeds that have one (offline runs)."""
+        scores = [r.normalized_score for r in self.runs if r.normalized_score is not None]
+        return float(np.mean(scores)) if scores else None
+
+    def as_dict(self) -> dict:
+        reached = np.isfinite(self.steps_to_threshold)
+        return {
+            "algorithm": self.algorithm,
+            "group": self.arm.group_values if self.arm else {},
+            "differs_in": self.arm.distinct if self.arm else {},
+            "seeds": len(self.runs),
+            "x_axis": self.x_axis,
+            "dataset": self.dataset,
+            "normalized_score_mean": self.normalized_score_mean,
+            "run_ids": [r.run_id for r in self.runs],
+            "score_mean": float(self.scores.mean()),
+            "score_std": float(self.scores.std()),
+            "iqm": self.iqm[0],
+            "iqm_low": _finite_or_none(self.iqm[1]),
+            "iqm_high": _finite_or_none(self.iqm[2]),
+            "auc_mean": float(self.auc.mean()),
+            "auc_std": float(self.auc.std()),
+            "threshold_reached": int(reached.sum()),
+            "steps_to_threshold_median": _finite_or_none(np.median(self.steps_to_threshold)),
+        }
+
+
+@dataclass
+class PairResult:
+    """A vs B on one per-seed quantity: P(A > B) with its CI and a Mann-Whitney p-value."""
+
+    a: str
+    b: str
+    quantity: str
+    p_improvement: tuple[float, float, float]
+    p_value: float
+
+    def flipped(self) -> PairResult:
+        """B vs A: P(B > A) = 1 - P(A > B), the interval mirrored; the p-value is symmetric."""
+        p, low, high = self.p_improvement
+        return PairResult(self.b, self.a, self.quantity, (1 - p, 1 - high, 1 - low), self.p_value)
+
+    def decisive(self, confidence: float) -> int:
+        """+1 if A is reliably better, -1 if B is, 0 if the data can't tell."""
+        _, low, high = self.p_improvement
+        if not self.p_value < 1 - confidence:
+            return 0
+        return 1 if low > 0.5 else -1 if high < 0.5 else 0
+
+
+@dataclass
+class Comparison:
+    env_id: str
+    threshold: float
+    budgets: dict[str, int]  # x-axis -> total_steps of the runs compared on it
+    score: str
+    confidence: float
+    algos: list[AlgoResult]
+    pairs: list[PairResult]
+    grids: dict[str, np.ndarray]  # x-axis -> steps of the aligned learning curves
+    left_out: list[str] = field(default_factory=list)
+    group_by: list[str] = field(default_factory=list)  # the study's keys; []: by algorithm
+    splits: list[str] = field(default_factory=list)  # groups of several configurations
+    published: list[dict] = field(default_factory=list)  # reference figures (conf/env/*.yaml)
+
+    def as_dict(self) -> dict:
+        return {
+            "env": self.env_id,
+            "threshold": self.threshold,
+            "total_steps": self.budgets.get(ENV_STEPS),
+            "gradient_steps": self.budgets.get(GRADIENT_STEPS),
+            "score": self.score,
+            "confidence": self.confidence,
+            "algos": {r.algo: r.as_dict() for r in self.algos},
+            "pairs": [
+                {
+                    "a": p.a,
+                    "b": p.b,
+                    "quantity": p.quantity,
+                    "p_improvement": p.p_improvement[0],
+                    "p_improvement_low": _finite_or_none(p.p_improvement[1]),
+                    "p_improvement_high": _finite_or_none(p.p_improvement[2]),
+                    "mann_whitney_p": p.p_value,
+                    "verdict": p.decisive(self.confidence),
+                }
+                for p in self.pairs
+            ],
+            "left_out": self.left_out,
+            "group_by": self.group_by,
+            "split": self.splits,
+            "published": self.published,
+            "published_caveat": PUBLISHED_CAVEAT if self.published else None,
+        }
+
+
+# --- choosing the runs ----------------------------------------------------------------------
+
+
+def _budget(run) -> int | None:
+    value = run.data.params.get("total_steps")
+    return int(value) if value is not None and value.isdigit() else None
+
+
+def _runs(n: int) -> str:
+    return f"{n} run" if n == 1 else f"{n} runs"
+
+
+def _most_common(values) -> object:
+    return Counter(values).most_common(1)[0][0]
+
+
+def _listed(counts: Counter, key: str) -> str:
+    return ", ".join(f"{key}={value}: {n}" for value, n in sorted(counts.items(), key=str))
+
+
+def select_runs(
+    runs: list,
+    env_id: str,
+    algos: list[str],
+    budget: int | None,
+    gradient_budget: int | None = None,
+    dataset: str | None = None,
+):
+    """The comparable training runs of ``algos`` on ``env_id``, and notes on the rest.
+
+    Returns ``(chosen runs, budgets, notes)``: ``budgets`` maps each x-axis to the budget its runs
+    share, the given one (``budget`` for env steps, ``gradient_budget`` for offline runs) or else
+    the most common among the finished runs. Offline runs also share one dataset (``dataset``, or
+    the most common).
+    """
+    notes: list[str] = []
+    training = [r for r in runs if r.data.tags.get(KIND_TAG, "train") == "train"]
+    wanted = [r for r in training if not algos or r.data.tags.get("algo") in algos]
+    other_envs = Counter(r.data.tags.get("env") for r in wanted if r.data.tags.get("env") != env_id)
+    if other_envs:
+        listed = ", ".join(f"{env}: {n}" for env, n in sorted(other_envs.items(), key=str))
+        notes.append(f"{_runs(sum(other_envs.values()))} on other envs ({listed})")
+    on_env = [r for r in wanted if r.data.tags.get("env") == env_id]
+    unfinished = [r for r in on_env if r.info.status != tracking.FINISHED]
+    for r in unfinished:
+        notes.append(
+            f"run {r.info.run_id} ({r.data.tags.get('algo')}, seed {r.data.tags.get('seed')}) "
+            f"is {r.info.status}"
+        )
+    pruned = [r for r in on_env if tracking.PRUNED_TAG in r.data.tags]
+    if pruned:
+        notes.append(f"{_runs(len(pruned))} of sweep trials stopped early by pruning")
+    finished = [
+        r
+        for r in on_env
+        if r.info.status == tracking.FINISHED and tracking.PRUNED_TAG not in r.data.tags
+    ]
+    offline = [r for r in finished if x_axis(r) == GRADIENT_STEPS]
+    if offline:
+        dataset = dataset or _most_common(r.data.tags.get("dataset") for r in offline)
+        other = Counter(r.data.tags.get("dataset") for r in offline)
+        del other[dataset]
+        if other:
+            notes.append(
+                f"{_runs(sum(other.values()))} trained on another dataset than {dataset} "
+                f"({_listed(other, 'dataset')})"
+            )
+        finished = [
+            r for r in finished if x_axis(r) == ENV_STEPS or r.data.tags.get("dataset") == dataset
+        ]
+    chosen, budgets = [], {}
+    for axis, given in ((ENV_STEPS, budget), (GRADIENT_STEPS, gradient_budget)):
+        on_axis = [r for r in finished if x_axis(r) == axis]
+        if not on_axis:
+            continue
+        budgets[axis] = given if given is not None else _most_common(_budget(r) for r in on_axis)
+        other = Counter(_budget(r) for r in on_axis if _budget(r) != budgets[axis])
+        if other:
+            notes.append(
+                f"{_runs(sum(other.values()))} with another budget than {budgets[axis]} "
+                f"{AXIS_NAMES[axis]} ({_listed(other, 'total_steps')})"
+            )
+        chosen += [r for r in on_axis if _budget(r) == budgets[axis]]
+    return chosen, budgets, notes
+
+
+def load_seed_runs(client, runs: list, threshold: float) -> dict[str, SeedRun]:
+    """Eval curves and summaries of ``runs`` by run id (runs without evals are not in it)."""
+    loaded: dict[str, SeedRun] = {}
+    for run in runs:
+        steps, values = tracking.metric_history(client, run.info.run_id, CURVE_METRIC)
+        if not steps:
+            continue
+        loaded[run.info.run_id] = SeedRun(
+            run_id=run.info.run_id,
+            algo=run.data.tags["algo"],
+            seed=run.data.tags.get("seed", "?"),
+            steps=np.asarray(steps),
+            returns=np.asarray(values),
+            summary=stats.run_summary(steps, values, threshold),
+            x_axis=x_axis(run),
+            dataset=run.data.tags.get("dataset"),
+            normalized_score=run.data.metrics.get("final/normalized_score"),
+        )
+    return loaded
+
+
+def published_figures(env_cfg, algorithms: list[str]) -> list[dict]:
+    """The env's published reference figures (``published:`` in its config) for ``algorithms``,
+    in their order."""
+    figures = [dict(f) for f in (env_cfg.get("published") or [])]
+    return [f for a in algorithms for f in figures if f.get("algo") == a]
+
+
+# --- the statistics -------------------------------------------------------------------------
+
+
+def compare_groups(
+    grouped: dict[str, list[SeedRun]],
+    order: list[str],
+    *,
+    env_id: str,
+    threshold: float,
+    budgets: dict[str, int],
+    score: str,
+    confidence: float = 0.95,
+    n_resamples: int = 5000,
+    seed: int = 0,
+    arms: dict[str, Arm] | None = None,
+) -> Comparison:
+    """Per-arm summaries and every pairwise comparison, in ``order`` (arm names, the keys of
+    ``grouped``; ``arms`` describes them)."""
+    boot = {"confidence": confidence, "n_resamples": n_resamples, "seed": seed}
+    results = []
+    for name in order:
+        runs = sorted(grouped[name], key=lambda r: r.seed)
+        scores = np.array([r.summary[score] for r in runs])
+        results.append(
+            AlgoResult(
+                algo=name,
+                runs=runs,
+                scores=scores,
+                iqm=stats.iqm_ci([scores], **boot),
+                auc=np.array([r.summary["final/auc"] for r in runs]),
+                steps_to_threshold=np.array([r.summary["final/steps_to_threshold"] for r in runs]),
+                arm=(arms or {}).get(name),
+            )
+        )
+    pairs = []
+    for a, b in combinations(results, 2):
+        quantities = [("score", a.scores, b.scores)]
+        if a.x_axis == b.x_axis:  # a rate of learning only compares on the same x-axis
+            quantities.append(("auc", a.auc, b.auc))
+        for quantity, xa, xb in quantities:
+            pairs.append(
+                PairResult(
+                    a.algo,
+                    b.algo,
+                    quantity,
+                    stats.poi_ci(xa, xb, **boot),
+                    stats.mann_whitney_p(xa, xb),
+                )
+            )
+    grids = {}
+    for res in results:
+        steps = np.concatenate([r.steps for r in res.runs])
+        grids[res.x_axis] = np.union1d(grids.get(res.x_axis, steps), steps)
+    return Comparison(
+        env_id=env_id,
+        threshold=threshold,
+        budgets=budgets,
+        score=score,
+        confidence=confidence,
+        algos=results,
+        pairs=pairs,
+        grids=grids,
+    )
+
+
+# --- the command ----------------------------------------------------------------------------
+
+
+def _check(cfg: DictConfig) -> None:
+    if cfg.score not in SCORES:
+        raise ConfigError(f"score={cfg.score!r} is not allowed: must be one of {', '.join(SCORES)}")
+    if not 0 < cfg.confidence < 1:
+        raise ConfigError(f"confidence={cfg.confidence!r} is not allowed: must be in (0, 1)")
+    if not (isinstance(cfg.n_resamples, int) and cfg.n_resamples >= 100):
+        raise ConfigError(f"n_resamples={cfg.n_resamples!r} is not allowed: must be >= 100")
+
+
+def _check_group_by(group_by: list[str], runs: list, experiment: str) -> None:
+    """Every ``group_by`` key must be a config key of some training run of the experiment."""
+    params = [r.data.params for r in runs if r.data.tags.get(KIND_TAG, "train") == "train"]
+    for key in group_by:
+        if not any(key in p for p in params):
+            raise ConfigError(
+                f"group_by={key!r} is not a config key of any run in experiment {experiment!r}: "
+                + unknown_key_hint(key, params)
+            )
+
+
+def compare(cfg: DictConfig) -> tuple[Comparison, Path, str | None]:
+    """Build the comparison ``cfg`` asks for, write the report; returns it, its dir, a UI link."""
+    _check(cfg)
+    client = tracking.connect(cfg.tracking.uri)
+    experiment = client.get_experiment_by_name(cfg.tracking.experiment)
+    if experiment is None:
+        names = [e.name for e in client.search_experiments()]
+        raise ConfigError(
+            f"tracking.experiment={cfg.tracking.experiment!r} is not in {cfg.tracking.uri}; "
+            f"experiments there: {', '.join(names) or 'none'}"
+        )
+    algos = list(cfg.algos)
+    group_by = parse_group_by(cfg.group_by)
+    runs = tracking.search_runs(client, experiment.experiment_id)
+    _check_group_by(group_by, runs, cfg.tracking.experiment)
+    chosen, budgets, notes = select_runs(
+        runs, cfg.env.id, algos, cfg.total_steps, cfg.gradient_steps, cfg.dataset
+    )
+    loaded = load_seed_runs(client, chosen, cfg.env.threshold)
+    notes += [
+        f"run {r.info.run_id} ({r.data.tags.get('algo')}, seed {r.data.tags.get('seed')}) "
+        f"logged no {CURVE_METRIC}"
+        for r in chosen
+        if r.info.run_id not in loaded
+    ]
+    arms, lacking, splits = build_arms(
+        [r for r in chosen if r.info.run_id in loaded], group_by, algos
+    )
+    notes += lacking
+    found_algos = {a.algo for a in arms}
+    missing = [a for a in algos if a not in found_algos]
+    if missing or not arms:
+        found = sorted({r.data.tags.get("algo") for r in runs if r.data.tags.get("algo")})
+        raise ConfigError(
+            f"algos={algos or sorted(found_algos)} has no finished {cfg.env.id} runs for "
+            f"{', '.join(missing) or 'any'} in experiment {cfg.tracking.experiment!r} "
+            f"(algorithms with runs there: {', '.join(found) or 'none'})"
+            + (f"; left out: {'; '.join(notes)}" if notes else "")
+        )
+    comparison = compare_groups(
+        {arm.name: [loaded[r.info.run_id] for r in arm.runs] for arm in arms},
+        [arm.name for arm in arms],
+        env_id=cfg.env.id,
+        threshold=cfg.env.threshold,
+        budgets=budgets,
+        score=cfg.score,
+        confidence=cfg.confidence,
+        n_resamples=cfg.n_resamples,
+        seed=cfg.seed,
+        arms={arm.name: arm for arm in arms},
+    )
+    comparison.left_out = notes
+    comparison.group_by = group_by
+    comparison.splits = splits
+    comparison.published = published_figures(cfg.env, list(dict.fromkeys(a.algo for a in arms)))
+    out = Path(cfg.out)
+    files = write_report(
+        comparison, out, source=f"{cfg.tracking.uri}, experiment {cfg.tracking.experiment!r}"
+    )
+    url = _log_report(client, cfg, comparison, files) if cfg.log_report else None
+    return comparison, out, url
+
+
+#: MLflow's limits on a run name and a tag value.
+MAX_NAME, MAX_TAG = 250, 8000
+
+
+def mlflow_key(name: str) -> str:
+    """An arm's name as part of an MLflow param/metric key (letters, digits, ``_-. :`` only):
+    ``td3 (algo.hidden_sizes=[64, 64])`` -> ``td3 algo.hidden_sizes:64 64``."""
+    key = re.sub(r"[^\w.\- :]", "", name.replace("=", ":").replace(",", " "))
+    return re.sub(" +", " ", key).strip()[:200]
+
+
+def _log_report(client, cfg: DictConfig, comparison: Comparison, files: list[Path]) -> str:
+    """The report as an MLflow run of its own, beside the runs it compares."""
+    names = [r.algo for r in comparison.algos]
+    algorithms = list(dict.fromkeys(r.algorithm for r in comparison.algos))
+    study = f"-by-{'+'.join(comparison.group_by)}" if comparison.group_by else ""
+    with tracking.side_run(
+        client,
+        cfg.tracking.experiment,
+        run_name=f"report-{'-vs-'.join(algorithms)}{study}-{comparison.env_id}"[:MAX_NAME],
+        tags={
+            KIND_TAG: "report",
+            "env": comparison.env_id,
+            "algos": ",".join(algorithms),
+            "arms": "; ".join(names)[:MAX_TAG],
+            "mlflow.note.content": verdict(comparison)[:MAX_TAG],
+        },
+        spool_dir=Path(cfg.work_dir) / "spool",
+    ) as tracker:
+        tracker.log_params(
+            {
+                "score": comparison.score,
+                **{f"budget.{axis}": b for axis, b in comparison.budgets.items()},
+                "confidence": comparison.confidence,
+                "n_resamples": cfg.n_resamples,
+                **{f"runs.{mlflow_key(r.algo)}": len(r.runs) for r in comparison.algos},
+            }
+        )
+        tracker.log_metrics(
+            {
+                f"{mlflow_key(r.algo)}/{key}": value
+                for r in comparison.algos
+                for key, value in r.as_dict().items()
+                if isinstance(value, float | int) and math.isfinite(value)
+            },
+            step=0,
+        )
+        for path in files:
+            tracker.log_artifact(path)
+    return tracker.url

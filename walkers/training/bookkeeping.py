@@ -1,0 +1,258 @@
+"""Per-run bookkeeping that every training loop shares.
+
+A loop only acts, steps, observes and updates (:mod:`walkers.training.loops`); after each step it
+hands the :class:`RunBook` the step's losses, and the book does the rest for its run: progress
+counters, metric logging, evaluations (``eval/*``, ``best.pt``), videos, checkpoints
+(``last.pt`` and the local resume copy), the divergence check, the pruning callback, and the
+``final/*`` summary. A population has one book per member.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import gymnasium as gym
+import torch
+
+from walkers.agents.base import Agent
+from walkers.agents.health import SKIPPED_IN_A_ROW
+from walkers.analysis.stats import run_summary
+from walkers.seeding import env_rng_state, eval_start_seeds, first_training_reset, restore_env_rng
+from walkers.tracking import ENV_STEPS, GRADIENT_STEPS, Tracker
+from walkers.training import checkpoints
+from walkers.training.evaluation import Evaluation, greedy_evaluation
+from walkers.training.rollout import record_episodes
+from walkers.training.video import write_gif
+
+#: Where a run keeps its resume checkpoint on the machine that trains it: ``last.pt`` with the
+#: replay buffer (exactly what a resume on this machine needs), beside ``checkpoints/``, whose
+#: files are uploaded to MLflow (lighter: no buffer unless ``save_buffer=true``).
+RESUME_DIR = "resume"
+#: Frames kept in the gif logged every ``video_every`` steps (a glance, not a film).
+TRAINING_GIF_FRAMES = 500
+
+
+class TrainingDiverged(RuntimeError):
+    """Every update for ``divergence_patience`` updates in a row had a NaN/inf loss."""
+
+
+@dataclass(frozen=True)
+class Axis:
+    """What the ``step`` of a run's metrics counts, its throughput metric and progress unit."""
+
+    name: str
+    rate_metric: str
+    unit: str
+
+
+ENV_STEP_AXIS = Axis(ENV_STEPS, "perf/sps", "step")  # online: env steps
+GRADIENT_STEP_AXIS = Axis(GRADIENT_STEPS, "perf/gradient_steps_per_s", "grad step")  # offline
+
+
+@dataclass
+class TrainerSettings:
+    total_steps: int
+    eval_every: int
+    eval_episodes: int
+    checkpoint_every: int
+    log_every: int
+    seed: int
+    threshold: float
+    save_buffer: bool = False
+    progress: bool = True
+    video_every: int = 0  # env steps between gifs of the greedy policy; 0: never
+    divergence_patience: int = 100  # skipped (NaN/inf) updates in a row that end the run FAILED
+
+
+@dataclass
+class Progress:
+    """Resumable loop state."""
+
+    step: int = 0  # env steps (offline: gradient steps) taken
+    episodes: int = 0  # training episodes finished
+    eval_steps: list[int] = field(default_factory=list)
+    eval_means: list[float] = field(default_factory=list)
+    best_eval: float = -math.inf
+
+
+class RunBook:
+    """The bookkeeping of one run (see the module docstring)."""
+
+    def __init__(
+        self,
+        agent: Agent,
+        env: gym.Env | None,
+        eval_env: gym.Env,
+        tracker: Tracker,
+        settings: TrainerSettings,
+        checkpoint_dir: Path,
+        checkpoint_extra: dict | None = None,
+        video_env: gym.Env | None = None,
+        on_evaluation: Callable[[int, float], bool] | None = None,
+        evaluation: Evaluation = greedy_evaluation,
+        axis: Axis = ENV_STEP_AXIS,
+        summarize: Callable[[dict[str, float]], dict[str, float]] | None = None,
+    ):
+        self.agent, self.env, self.eval_env, self.video_env = agent, env, eval_env, video_env
+        self.tracker, self.settings, self.axis = tracker, settings, axis
+        self.checkpoint_dir = Path(checkpoint_dir)
+        self.checkpoint_extra = checkpoint_extra or {}  # e.g. the composed config
+        # called with (step, eval mean) after each evaluation; True stops training (a pruned trial)
+        self.on_evaluation = on_evaluation
+        self.evaluation = evaluation
+        self.summarize = summarize or (lambda summary: summary)  # extra final/* metrics
+        self.stopped_early = False
+        self.last_checkpoint_step: int | None = None
+        self.progress = Progress()
+        self._env_rng: dict | None = None  # a resumed run's training-env RNG, until its reset
+        self.eval_start_seeds = eval_start_seeds(settings.seed, settings.eval_episodes)
+        self.start_clock(time.perf_counter())
+
+    # --- checkpoints --------------------------------------------------------------------------
+    def restore(self, state: dict) -> None:
+        """Continue from a checkpoint written by :meth:`save_checkpoint`."""
+        self.agent.load_state_dict(state["agent"])
+        self.progress = Progress(**state["trainer"])
+        self.last_checkpoint_step = self.progress.step
+        torch.set_rng_state(state["torch_rng"])
+        self._env_rng = state.get("env_rng")
+        if notes := self.agent.resume_notes():  # e.g. a replay buffer that had to be refilled
+            self.tracker.set_tags(notes)
+
+    @property
+    def resume_checkpoint(self) -> Path:
+        """``last.pt`` with everything a resume needs (the replay buffer included), kept locally."""
+        return self.checkpoint_dir.parent / RESUME_DIR / "last.pt"
+
+    def save_checkpoint(self, name: str = "last.pt") -> Path:
+        """Write ``name`` and upload it; keep ``last.pt`` whole as :attr:`resume_checkpoint` too.
+
+        The uploaded ``last.pt`` holds the replay buffer only with ``save_buffer=true`` (it is
+        large); the local resume copy always does, so a resume on this machine is exact.
+        """
+        last = name == "last.pt"
+        state = {
+            "trainer": dataclasses.asdict(self.progress),
+            "torch_rng": torch.get_rng_state(),
+            "env_rng": env_rng_state(self.env) if self.env is not None else None,
+            **self.checkpoint_extra,
+        }
+        if last and not self.settings.save_buffer:
+            whole = state | {"agent": self.agent.state_dict(with_buffer=True)}
+            checkpoints.save(whole, self.resume_checkpoint)
+        state["agent"] = self.agent.state_dict(with_buffer=last and self.settings.save_buffer)
+        path = checkpoints.save(state, self.checkpoint_dir / name)
+        if last and self.settings.save_buffer:
+            checkpoints.save(state, self.resume_checkpoint)
+        self.tracker.log_artifact(path, "checkpoints")
+        return path
+
+    def checkpoint_and_flush(self) -> None:
+        # Metrics reach MLflow only up to a checkpoint: a resumed run never logs a step twice.
+        self.save_checkpoint("last.pt")
+        self.last_checkpoint_step = self.progress.step
+        self.tracker.flush()
+
+    # --- the training env ---------------------------------------------------------------------
+    def first_reset(self):
+        """The loop's first reset: seeded from the run's seed in a fresh run; in a resumed one the
+        env's RNG continues from the checkpoint (an interrupted episode cannot be continued, so
+        a new one starts where the uninterrupted run's next episode would have)."""
+        if self._env_rng is None:
+            return first_training_reset(self.env, self.settings.seed)
+        restore_env_rng(self.env, self._env_rng)
+        self._env_rng = None
+        return self.env.reset()
+
+    def record_episode(self, info: dict) -> None:
+        """A training episode ended at the current step: count it, log its true return."""
+        p = self.progress
+        p.episodes += 1
+        episode = info["episode"]  # recorded before any reward shaping
+        self.tracker.log_metrics(
+            {"train/episode_return": episode["r"], "train/episode_length": episode["l"]}, p.step
+        )
+
+    # --- after every step ---------------------------------------------------------------------
+    def start_clock(self, now: float) -> None:
+        """Throughput is measured from ``now`` (a ``time.perf_counter()``) at the current step."""
+        self._log_step, self._log_time = self.progress.step, now
+
+    def after_step(self, losses: dict[str, torch.Tensor]) -> bool:
+        """Log, evaluate, film, checkpoint when due; True when the run should stop early."""
+        s, p = self.settings, self.progress
+        if p.step % s.log_every == 0:
+            now = time.perf_counter()
+            rate = (p.step - self._log_step) / (now - self._log_time)
+            self._log_step, self._log_time = p.step, now
+            scalars = {k: v.item() for k, v in losses.items()}
+            self.tracker.log_metrics({self.axis.rate_metric: rate, **scalars}, p.step)
+            self._check_divergence(scalars)
+        if p.step % s.eval_every == 0 or p.step == s.total_steps:
+            mean = self.evaluate()
+            if (
+                self.on_evaluation is not None
+                and p.step < s.total_steps  # a finished run is never "stopped early"
+                and self.on_evaluation(p.step, mean)
+            ):
+                self.stopped_early = True
+                return True
+        if s.video_every and p.step % s.video_every == 0:
+            self.record_video()
+        if p.step % s.checkpoint_every == 0 and p.step < s.total_steps:  # the end: in finish()
+            self.checkpoint_and_flush()
+        return False
+
+    def _check_divergence(self, scalars: dict[str, float]) -> None:
+        in_a_row = scalars.get(SKIPPED_IN_A_ROW, 0.0)
+        if in_a_row >= self.settings.divergence_patience:
+            losses = ", ".join(f"{k}={v}" for k, v in scalars.items() if k.startswith("loss/"))
+            kept = (
+                f"checkpoints/last.pt (step {self.last_checkpoint_step}) is the last good one"
+                if self.last_checkpoint_step is not None
+                else "no checkpoint had been written yet"
+            )
+            raise TrainingDiverged(
+                f"training diverged at step {self.progress.step}: the last {int(in_a_row)} "
+                f"updates all had a NaN/inf loss ({losses}) and were skipped; {kept}"
+            )
+
+    # --- evaluation ---------------------------------------------------------------------------
+    def evaluate(self) -> float:
+        """Run the evaluation; log ``eval/*``, keep ``best.pt``; returns the mean return."""
+        returns, extra = self.evaluation(self.agent, self.eval_env, self.eval_start_seeds)
+        p = self.progress
+        mean = float(returns.mean())
+        p.eval_steps.append(p.step)
+        p.eval_means.append(mean)
+        metrics = {"eval/return_mean": mean, "eval/return_std": float(returns.std())}
+        self.tracker.log_metrics(metrics | extra, p.step)
+        if mean > p.best_eval:
+            p.best_eval = mean
+            self.save_checkpoint("best.pt")
+        return mean
+
+    def record_video(self) -> None:
+        """Log a gif of one greedy episode (from the first eval start state) to ``videos/``."""
+        _, frames, fps = record_episodes(self.agent, self.video_env, self.eval_start_seeds[:1])
+        path = self.checkpoint_dir.parent / "videos" / f"step_{self.progress.step:08d}.gif"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        write_gif(frames[:TRAINING_GIF_FRAMES], path, fps)
+        self.tracker.log_artifact(path, "videos")
+
+    # --- the end ------------------------------------------------------------------------------
+    def finish(self, rate: float | None, extra: dict[str, float] | None = None) -> dict:
+        """Log the ``final/*`` summary (with ``rate`` and ``extra``), write last.pt, flush."""
+        p = self.progress
+        summary = self.summarize(run_summary(p.eval_steps, p.eval_means, self.settings.threshold))
+        summary |= extra or {}
+        if rate is not None:
+            summary[self.axis.rate_metric] = rate
+        self.tracker.log_metrics(summary, p.step)
+        self.checkpoint_and_flush()
+        return summary

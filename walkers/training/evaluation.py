@@ -1,0 +1,56 @@
+"""How a run is evaluated: greedy episodes from the run's start states, or, for a
+return-conditioned agent (the Decision Transformer), greedy episodes per target return."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import gymnasium as gym
+import numpy as np
+
+from walkers.agents.base import Agent
+from walkers.training.rollout import run_episodes
+
+#: (agent, eval env, start seeds) -> (returns of the headline evaluation, extra metrics)
+Evaluation = Callable[[Agent, gym.Env, list[int]], tuple[np.ndarray, dict[str, float]]]
+#: A return -> its normalized score (0: a random policy, 100: the dataset's behaviour), or None.
+Normalize = Callable[[float], float | None]
+
+
+def greedy_evaluation(agent: Agent, env: gym.Env, start_seeds: list[int]):
+    """Deterministic episodes, one per start seed."""
+    return run_episodes(agent, env, start_seeds), {}
+
+
+def per_target_return(normalize: Normalize) -> Evaluation:
+    """Greedy episodes for each of ``agent.target_returns``: the first target is the headline
+    (``eval/return_mean``); every target is also logged on its own
+    (``eval/target_<R>/return_mean``) and, where the dataset has reference returns, as a
+    normalized score (``.../normalized_score``, and ``eval/normalized_score`` for the first)."""
+
+    def evaluate(agent, env: gym.Env, start_seeds: list[int]):
+        extra, headline = {}, None
+        for target in agent.target_returns:
+            agent.target_return = target
+            returns = run_episodes(agent, env, start_seeds)
+            name = f"eval/target_{target:g}"
+            extra[f"{name}/return_mean"] = float(returns.mean())
+            if (score := normalize(float(returns.mean()))) is not None:
+                extra[f"{name}/normalized_score"] = score
+            headline = returns if headline is None else headline
+        agent.target_return = agent.target_returns[0]
+        if (score := normalize(float(headline.mean()))) is not None:
+            extra["eval/normalized_score"] = score
+        return headline, extra
+
+    return evaluate
+
+
+def with_normalized_score(normalize: Normalize) -> Callable[[dict], dict]:
+    """A run summary plus ``final/normalized_score`` where the dataset has reference returns."""
+
+    def summarize(summary: dict[str, float]) -> dict[str, float]:
+        score = normalize(summary.get("final/return_mean", float("nan")))
+        return summary if score is None else summary | {"final/normalized_score": score}
+
+    return summarize

@@ -1,0 +1,152 @@
+"""The training loops: they act, step, observe and update; their runs' books do the rest.
+
+    online:      act -> env step -> observe -> update -> book.after_step
+    offline:     update (a gradient step on the dataset) -> book.after_step
+    population:  act all -> step each env -> observe all -> one update -> each book.after_step
+
+Off-policy agents learn every step after their warm-up, on-policy ones when a batch of episodes
+is complete: the agent decides inside ``update()``, the loop is the same. Every loop ends the
+same way (:func:`_running`): a progress bar, the throughput over the session, and on Ctrl-C
+(or SIGTERM turned into one) a last checkpoint of every run before the interrupt propagates.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+
+import gymnasium as gym
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from walkers.agents.actor_critic import ActorCritic
+from walkers.agents.base import Agent, Transition
+from walkers.training.bookkeeping import RunBook
+
+
+def train_online(agent: Agent, env: gym.Env, book: RunBook) -> dict[str, float]:
+    """Until ``total_steps`` env steps (or a pruner stops the run); returns the summary."""
+    p = book.progress
+
+    def loop(bar: tqdm) -> None:
+        obs, _ = book.first_reset()
+        losses: dict[str, torch.Tensor] = {}
+        while p.step < book.settings.total_steps:
+            action = agent.act(obs, explore=True)
+            next_obs, reward, terminated, truncated, info = env.step(action)
+            agent.observe(Transition(obs, action, float(reward), next_obs, terminated, truncated))
+            losses.update(agent.update())
+            p.step += 1
+            obs = next_obs
+            if terminated or truncated:
+                book.record_episode(info)
+                obs, _ = env.reset()
+            if _after_step(book, losses, bar):
+                return
+
+    return _running([book], loop)[0]
+
+
+def train_offline(agent: Agent, book: RunBook) -> dict[str, float]:
+    """Until ``total_steps`` gradient steps on the agent's dataset; returns the summary."""
+    p = book.progress
+
+    def loop(bar: tqdm) -> None:
+        while p.step < book.settings.total_steps:
+            losses = agent.update()
+            p.step += 1
+            if _after_step(book, losses, bar):
+                return
+
+    return _running([book], loop)[0]
+
+
+def train_population(
+    agent: ActorCritic, envs: Sequence[gym.Env], books: Sequence[RunBook]
+) -> list[dict[str, float]]:
+    """K members in one agent, one env and one book each, in lockstep; one summary each (with
+    ``perf/population_sps``, the aggregate throughput)."""
+    p, settings = books[0].progress, books[0].settings  # the members share the step
+
+    def loop(bar: tqdm) -> None:
+        obs = [book.first_reset()[0] for book in books]  # each seeded as a single run is
+        latest: dict[str, torch.Tensor] = {}
+        while p.step < settings.total_steps:
+            actions = agent.act_population(np.stack(obs), explore=True)
+            results = [env.step(action) for env, action in zip(envs, actions, strict=True)]
+            agent.observe_population(
+                [
+                    Transition(obs[i], actions[i], reward, next_obs, terminated, truncated)
+                    for i, (next_obs, reward, terminated, truncated, _) in enumerate(results)
+                ]
+            )
+            for i, (book, env, result) in enumerate(zip(books, envs, results, strict=True)):
+                next_obs, _, terminated, truncated, info = result
+                book.progress.step += 1
+                obs[i] = next_obs
+                if terminated or truncated:
+                    book.record_episode(info)
+                    obs[i], _ = env.reset()
+            latest.update(agent.update())
+            logging = p.step % settings.log_every == 0
+            for i, book in enumerate(books):  # losses are read only when they are logged
+                _after_step(book, {k: v[i] for k, v in latest.items()} if logging else {}, bar)
+
+    def settle() -> None:  # interrupted mid-step: every member checkpoints at the agent's step,
+        for book in books:  # so they can resume together
+            book.progress.step = agent.steps
+
+    return _running(books, loop, aggregate="perf/population_sps", settle=settle)
+
+
+def _after_step(book: RunBook, losses: dict[str, torch.Tensor], bar: tqdm) -> bool:
+    stop = book.after_step(losses)
+    step = book.progress.step
+    if step in book.progress.eval_steps[-1:]:
+        bar.set_postfix(eval_return=f"{book.progress.eval_means[-1]:.1f}", refresh=False)
+    if step % 100 == 0:
+        bar.update(step - bar.n)
+    return stop
+
+
+def _running(
+    books: Sequence[RunBook],
+    loop: Callable[[tqdm], None],
+    aggregate: str | None = None,
+    settle: Callable[[], None] | None = None,
+) -> list[dict[str, float]]:
+    """Run ``loop`` with a progress bar; checkpoint every run on Ctrl-C; the runs' summaries.
+
+    Throughput (``rate_metric``) counts the steps of this session; ``aggregate`` names a metric
+    for the throughput of all the books together (a population's); ``settle`` makes the books'
+    counters consistent before an interrupted loop's checkpoints.
+    """
+    first = books[0]
+    s, p = first.settings, first.progress
+    bar = tqdm(
+        total=s.total_steps,
+        initial=p.step,
+        unit=first.axis.unit,
+        disable=not s.progress,
+        dynamic_ncols=True,
+        mininterval=1.0,
+    )
+    start_step, start = p.step, time.perf_counter()
+    for book in books:
+        book.start_clock(start)
+    try:
+        loop(bar)
+    except KeyboardInterrupt:
+        if settle is not None:
+            settle()
+        for book in books:
+            book.checkpoint_and_flush()
+        raise
+    finally:
+        bar.close()
+    if p.step == start_step:  # resumed at its budget: nothing ran, no rate
+        return [book.finish(None) for book in books]
+    rate = (p.step - start_step) / (time.perf_counter() - start)
+    extra = {aggregate: rate * len(books)} if aggregate else {}
+    return [book.finish(rate, extra) for book in books]

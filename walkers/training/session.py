@@ -1,0 +1,227 @@
+"""One training session from a composed config: check it, resume or open the run(s), build the
+envs and the agent, run the loop, end every run with its status; return the optimized metric.
+
+    single run:   envs + agent -> open_run -> RunBook -> train_online | train_offline
+    population:   K members' envs + one agent -> K runs and books -> train_population
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from contextlib import contextmanager
+
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from walkers import tracking
+from walkers.agents.factory import build_agent
+from walkers.errors import ConfigError
+from walkers.training import resume
+from walkers.training.bookkeeping import (
+    ENV_STEP_AXIS,
+    GRADIENT_STEP_AXIS,
+    RunBook,
+    TrainerSettings,
+)
+from walkers.training.envs import env_spaces, make_env
+from walkers.training.evaluation import per_target_return, with_normalized_score
+from walkers.training.loops import train_offline, train_online, train_population
+from walkers.training.runs import open_run, prepare_run_dir
+from walkers.training.validate import is_offline, validate
+from walkers.tuning.trial import TrialReporter
+
+log = logging.getLogger("walkers")
+
+POPULATION_TAG = "walkers.population"
+MEMBER_TAG = "walkers.population_member"
+
+
+def train(cfg: DictConfig, overrides: list[str] | tuple = ()) -> float:
+    """Train as ``cfg`` says; ``overrides`` are the command-line overrides (used by resume)."""
+    resume.check_resume_given(cfg.resume)
+    if not cfg.resume:
+        validate(cfg)  # before anything is created
+        warn_short_warmup(cfg)
+    client = tracking.connect(cfg.tracking.uri)
+    state, members = None, None
+    if OmegaConf.is_list(cfg.resume):  # several runs, continued together as one population
+        cfg, members = resume.load_population(client, cfg, overrides)
+        validate(cfg)
+    elif cfg.resume:  # the run's own config, plus the overrides allowed on resume
+        cfg, state = resume.load_run(client, cfg, overrides)
+        validate(cfg)
+    if cfg.torch_threads:
+        torch.set_num_threads(cfg.torch_threads)
+    if cfg.population > 1:
+        summaries = _train_population(cfg, client, members)
+        values = [s.get(cfg.optimized_metric, math.nan) for s in summaries]
+        log.info("%s per member = %s", cfg.optimized_metric, values)
+        return float(np.mean(values))
+    summary = _train_single(cfg, client, state)
+    value = summary.get(cfg.optimized_metric, math.nan)
+    log.info("%s = %s", cfg.optimized_metric, value)
+    return value
+
+
+def _train_single(cfg: DictConfig, client, state: dict | None) -> dict[str, float]:
+    data = load_dataset(cfg) if is_offline(cfg) else None
+    env = None if data is not None else make_env(cfg.env)  # offline agents never step an env
+    eval_env = make_env(cfg.env, shaping=False)
+    video_env = (
+        make_env(cfg.env, shaping=False, render_mode="rgb_array") if cfg.video_every else None
+    )
+    try:
+        agent = build_agent(
+            cfg, env_spaces(eval_env), **({"dataset": data} if data is not None else {})
+        )
+        axis = GRADIENT_STEP_AXIS if data is not None else ENV_STEP_AXIS
+        trackers = [open_run(client, cfg, axis.name, data)]
+        # From here on the run exists in MLflow: every way out sets its final status.
+        with _announced(trackers), tracking.ending(trackers):
+            offline = (
+                {
+                    "evaluation": per_target_return(data.normalized),
+                    "summarize": with_normalized_score(data.normalized),
+                }
+                if data is not None
+                else {}
+            )
+            book = _book(cfg, trackers[0], agent, env, eval_env, axis, video_env, **offline)
+            if cfg.sweep.trial_id is not None:
+                book.on_evaluation = TrialReporter(cfg.sweep)
+            if state is not None:
+                book.restore(state)
+                log.info("resuming run %s at step %d", trackers[0].run_id, book.progress.step)
+            if data is not None:
+                summary = train_offline(agent, book)
+            else:
+                summary = train_online(agent, env, book)
+            if book.stopped_early:
+                trackers[0].set_tags({tracking.PRUNED_TAG: book.progress.step})
+            return summary
+    finally:
+        for e in (env, eval_env, video_env):
+            if e is not None:
+                e.close()
+
+
+def _train_population(
+    cfg: DictConfig, client, resumed: list[tuple[DictConfig, dict]] | None
+) -> list[dict[str, float]]:
+    """``population=K``: K members in one agent and one loop, one MLflow run per member.
+
+    ``resumed``: per member, the stored config and last checkpoint of a run to continue.
+    """
+    k = cfg.population
+    members = (
+        [member_config(cfg, i) for i in range(k)] if resumed is None else [m for m, _ in resumed]
+    )
+    envs = [make_env(cfg.env) for _ in members]
+    eval_envs = [make_env(cfg.env, shaping=False) for _ in members]
+    trackers: list[tracking.Tracker] = []
+    try:
+        agent = build_agent(cfg, env_spaces(eval_envs[0]), population=k)
+        with _announced(trackers, population=True), tracking.ending(trackers):
+            for i, member in enumerate(members):
+                tags = {POPULATION_TAG: str(k), MEMBER_TAG: str(i)}
+                trackers.append(open_run(client, member, ENV_STEP_AXIS.name, extra_tags=tags))
+            books = [
+                _book(member, tracker, agent.member_policy(i), envs[i], eval_envs[i])
+                for i, (member, tracker) in enumerate(zip(members, trackers, strict=True))
+            ]
+            for book, (_, state) in zip(books, resumed or [], strict=False):
+                book.restore(state)
+            if resumed:
+                log.info("resuming %d runs together at step %d", k, books[0].progress.step)
+            return train_population(agent, envs, books)
+    finally:
+        for e in envs + eval_envs:
+            e.close()
+
+
+def _book(cfg: DictConfig, tracker, agent, env, eval_env, axis=ENV_STEP_AXIS, video_env=None, **kw):
+    """The run's :class:`RunBook`, checkpointing into its local folder with its config."""
+    return RunBook(
+        agent,
+        env,
+        eval_env,
+        tracker,
+        trainer_settings(cfg),
+        checkpoint_dir=prepare_run_dir(cfg, tracker) / "checkpoints",
+        checkpoint_extra={"config": OmegaConf.to_container(cfg, resolve=True)},
+        video_env=video_env,
+        axis=axis,
+        **kw,
+    )
+
+
+@contextmanager
+def _announced(trackers: list[tracking.Tracker], population: bool = False):
+    """On the way out, after the runs' statuses are set: say how they ended, where to see them,
+    and the command that continues them (a population's always, a single run's if killed)."""
+    try:
+        yield
+    finally:
+        for tracker in trackers:
+            log.info("MLflow run %s ended %s", tracker.run_id, tracker.status)
+            log.info("open it: `make ui`, then %s", tracker.url)
+        if population and trackers:
+            ids = ",".join(tracker.run_id for tracker in trackers)
+            log.info("continue them together: python -m walkers.train 'resume=[%s]'", ids)
+        elif trackers and trackers[0].status == tracking.KILLED:
+            log.info("continue it: python -m walkers.train resume=%s", trackers[0].run_id)
+
+
+def member_config(cfg: DictConfig, i: int) -> DictConfig:
+    """Member ``i``'s config: seed ``seed + i``, and ``population=1`` (what resuming it means)."""
+    member = cfg.copy()
+    member.seed = cfg.seed + i
+    member.population = 1
+    if cfg.tracking.run_name:
+        member.tracking.run_name = f"{cfg.tracking.run_name}-m{i}"
+    return member
+
+
+def trainer_settings(cfg: DictConfig) -> TrainerSettings:
+    return TrainerSettings(
+        total_steps=cfg.total_steps,
+        eval_every=cfg.eval_every,
+        eval_episodes=cfg.eval_episodes,
+        checkpoint_every=cfg.checkpoint_every,
+        log_every=cfg.log_every,
+        seed=cfg.seed,
+        threshold=cfg.env.threshold,
+        save_buffer=cfg.save_buffer,
+        progress=cfg.progress,
+        video_every=cfg.video_every,
+        divergence_patience=cfg.divergence_patience,
+    )
+
+
+def load_dataset(cfg: DictConfig):
+    """The offline dataset ``cfg.dataset``, checked against ``cfg.env``."""
+    from walkers.data import datasets  # Minari is imported only when a dataset is used
+
+    data = datasets.load(cfg.dataset)
+    if data.env_id is not None and data.env_id != cfg.env.id:
+        raise ConfigError(
+            f"dataset={data.id!r} was recorded on {data.env_id}, not on env.id={cfg.env.id!r}: "
+            f"pass the env it was recorded on"
+        )
+    return data
+
+
+def warn_short_warmup(cfg: DictConfig) -> None:
+    """A learning-rate warm-up longer than the run never reaches ``algo.lr`` (algo=dt)."""
+    warmup = OmegaConf.select(cfg, "algo.warmup_steps")
+    if warmup and warmup > cfg.total_steps:
+        log.warning(
+            "algo.warmup_steps=%d is more than total_steps=%d: the learning rate ends at %.0f%% "
+            "of algo.lr=%g; lower algo.warmup_steps (e.g. to total_steps / 10)",
+            warmup,
+            cfg.total_steps,
+            100 * cfg.total_steps / warmup,
+            cfg.algo.lr,
+        )

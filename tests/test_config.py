@@ -93,7 +93,7 @@ def test_sweep_files_compose_with_a_pruner_and_a_search_space(sweep):
     validate(cfg)
     assert cfg.hydra.sweeper._target_ == "walkers.tuning.sweeper.PruningOptunaSweeper"
     assert cfg.hydra.sweeper.study_name == sweep and cfg.hydra.sweeper.params
-    assert make_pruner(cfg.sweep.pruner) is not None
+    assert make_pruner(cfg.pruner) is not None
     absent = object()
     for key in cfg.hydra.sweeper.params:  # every searched key exists in the job config
         assert OmegaConf.select(cfg, key, default=absent) is not absent, key
@@ -102,3 +102,14 @@ def test_sweep_files_compose_with_a_pruner_and_a_search_space(sweep):
 def test_short_envs_shorten_the_off_policy_warm_up():
     assert compose_cfg(["env=pendulum"]).algo.learning_starts == 1000
     assert compose_cfg(["env=walker2d", "algo=ddpg"]).algo.learning_starts == 25_000
+
+
+def test_renamed_keys_still_work_for_one_release(capsys):
+    from walkers.cli import renamed_overrides
+
+    old = ["sweep/pruner=threshold", "sweep.pruner.lower=-5", "+sweep.warmup_steps=7", "seed=1"]
+    new = renamed_overrides(old)
+    assert new == ["pruner=threshold", "pruner.lower=-5", "+pruning.warmup_steps=7", "seed=1"]
+    assert capsys.readouterr().err.count("note:") == 3
+    cfg = compose_cfg(["sweeps=pendulum_tiny", *new[:2]])
+    assert cfg.pruner.lower == -5 and cfg.pruner._target_.endswith("ThresholdPruner")

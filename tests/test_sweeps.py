@@ -137,8 +137,8 @@ def test_pruners_stop_low_eval_returns_whichever_way_the_study_goes(tmp_path, pr
     study = optuna.create_study(study_name="s", storage=storage, direction=direction)
 
     def reporter() -> TrialReporter:
-        job = {"study": "s", "storage": storage, "pruner": PRUNERS[pruner]}
-        return TrialReporter(OmegaConf.create(job | {"trial_id": study.ask()._trial_id}))
+        job = {"study": "s", "storage": storage, "id": study.ask()._trial_id}
+        return TrialReporter(OmegaConf.create(job), OmegaConf.create(PRUNERS[pruner]))
 
     first = reporter()
     assert not first(200, -500.0)

@@ -87,6 +87,34 @@ def _one_line(error: Exception, overrides: list[str]) -> str:
     return text.splitlines()[0]
 
 
+#: Config names renamed in 0.2 (old -> new): the old ones still work for one release, with a note.
+RENAMED = {
+    "sweep/pruner": "pruner",  # the pruner group (conf/pruner/)
+    "sweep.pruner": "pruner",  # its settings, e.g. sweep.pruner.lower
+    "sweep.warmup_steps": "pruning.warmup_steps",
+    "sweep.startup_trials": "pruning.startup_trials",
+}
+
+
+def renamed_overrides(args: list[str]) -> list[str]:
+    """``args`` with renamed config keys given their new names, each noted once on stderr."""
+    out = []
+    for arg in args:
+        prefix, key = "", arg
+        while key[:1] in ("+", "~"):
+            prefix, key = prefix + key[0], key[1:]
+        for old, new in RENAMED.items():
+            if key == old or key.startswith((f"{old}=", f"{old}.")):
+                print(
+                    f"note: {old} is now {new} (the old name goes in the next release)",
+                    file=sys.stderr,
+                )
+                key = new + key[len(old) :]
+                break
+        out.append(prefix + key)
+    return out
+
+
 def exit_on_bad_overrides(config_name: str, args: list[str] | None = None) -> None:
     """Compose ``config_name`` with the command line's overrides; on error: one line, exit 2."""
     args = sys.argv[1:] if args is None else args

@@ -21,7 +21,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from walkers import CONF_DIR
-from walkers.cli import exit_on_bad_overrides
+from walkers.cli import exit_on_bad_overrides, renamed_overrides
 from walkers.errors import CheckpointError, ConfigError
 from walkers.training.bookkeeping import TrainingDiverged
 from walkers.training.session import train
@@ -52,7 +52,7 @@ def main(cfg: DictConfig) -> float:
         sys.exit(2)
     except TrainingDiverged as e:
         print(f"error: {e}; MLflow run marked FAILED", file=sys.stderr)
-        if cfg.sweep.trial_id is not None:
+        if cfg.trial.id is not None:
             return math.nan  # the sweeper scores a diverged trial as the worst one so far
         sys.exit(3)
     except KeyboardInterrupt:
@@ -61,5 +61,6 @@ def main(cfg: DictConfig) -> float:
 
 
 if __name__ == "__main__":
+    sys.argv[1:] = renamed_overrides(sys.argv[1:])
     exit_on_bad_overrides("train")
     main()

@@ -32,7 +32,10 @@ NOT_THE_EXPERIMENT = (
     "work_dir",  # local scratch
     "torch_threads",  # speed only
     "device",  # for CPU runs only (see arm_config): an accelerator's run stays its own arm
-    "sweep.",  # Optuna plumbing (study, trial, pruner); a pruned trial is left out anyway
+    "trial.",  # Optuna plumbing (study, trial id, parent run); a pruned trial is left out anyway
+    "pruner.",  # when a trial may be stopped, not what it learns
+    "pruning.",
+    "sweep.",  # the same, as runs before the rename recorded it
     "divergence_patience",  # a run that diverges ends FAILED and is left out; others never use it
     "optimized_metric",  # the value train returns to a sweep, not what it learns
     "dataset_stats.",  # describe the dataset (named by `dataset`, part of the arm)

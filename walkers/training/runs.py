@@ -40,11 +40,11 @@ def open_run(client, cfg: DictConfig, x_axis: str, data=None, extra_tags: dict |
         tags["dataset"] = data.id
     tags |= extra_tags or {}
     run_name = cfg.tracking.run_name or f"{algo}-{env_id}-s{cfg.seed}"
-    if cfg.sweep.trial_number is not None:  # a trial of an Optuna study
-        tags |= {"walkers.study": cfg.sweep.study, "walkers.trial": str(cfg.sweep.trial_number)}
-        run_name = f"{cfg.sweep.study}-trial{cfg.sweep.trial_number}"
-        if cfg.sweep.parent_run_id:
-            tags["mlflow.parentRunId"] = cfg.sweep.parent_run_id
+    if cfg.trial.number is not None:  # a trial of an Optuna study
+        tags |= {"walkers.study": cfg.trial.study, "walkers.trial": str(cfg.trial.number)}
+        run_name = f"{cfg.trial.study}-trial{cfg.trial.number}"
+        if cfg.trial.parent_run_id:
+            tags["mlflow.parentRunId"] = cfg.trial.parent_run_id
     tracker = tracking.Tracker.start(
         client, cfg.tracking.experiment, run_name=run_name, tags=tags, spool_dir=spool
     )

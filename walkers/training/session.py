@@ -89,8 +89,8 @@ def _train_single(cfg: DictConfig, client, state: dict | None) -> dict[str, floa
                 else {}
             )
             book = _book(cfg, trackers[0], agent, env, eval_env, axis, video_env, **offline)
-            if cfg.sweep.trial_id is not None:
-                book.on_evaluation = TrialReporter(cfg.sweep)
+            if cfg.trial.id is not None:  # a job of an Optuna study
+                book.on_evaluation = TrialReporter(cfg.trial, cfg.get("pruner"))
             if state is not None:
                 book.restore(state)
                 log.info("resuming run %s at step %d", trackers[0].run_id, book.progress.step)

@@ -130,7 +130,7 @@ def _check_population(cfg: DictConfig) -> None:
             f"population={k} is not allowed with algo={cfg.algo.name}: "
             "only td3 and ddpg train seed populations"
         )
-    for key, unsupported in (("video_every", cfg.video_every), ("sweep", cfg.sweep.trial_id)):
+    for key, unsupported in (("video_every", cfg.video_every), ("a sweep", cfg.trial.id)):
         if unsupported:
             raise ConfigError(
                 f"population={k} is not allowed with {key}: run the population without it "

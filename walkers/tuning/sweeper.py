@@ -8,7 +8,7 @@ overrides) with what RL tuning needs and that plugin lacks:
   Sweep files leave ``hydra.sweeper.direction`` null; one that contradicts the metric, an
   unknown metric, or a stored study of another metric or direction is refused with one
   ``error:`` line and exit 2 before any study or MLflow run is created.
-- Pruning: every job gets its trial (``sweep.*`` overrides); the trainer reports each evaluation
+- Pruning: every job gets its trial (``trial.*`` overrides); the trainer reports each evaluation
   to it and stops when the job's pruner says so (:mod:`walkers.tuning.trial`); the trial is
   told PRUNED.
 - Resume: ``n_trials`` is the size of the study. Running the same command again continues an
@@ -251,13 +251,13 @@ class PruningOptunaSweeper(OptunaSweeperImpl):
 
     def _job_overrides(self, study: optuna.Study, trial: optuna.Trial, parent_id: str | None):
         overrides = [
-            f"sweep.study='{study.study_name}'",
-            f"sweep.storage='{self.storage}'",
-            f"sweep.trial_id={trial._trial_id}",
-            f"sweep.trial_number={trial.number}",
+            f"trial.study='{study.study_name}'",
+            f"trial.storage='{self.storage}'",
+            f"trial.id={trial._trial_id}",
+            f"trial.number={trial.number}",
         ]
         if parent_id:
-            overrides.append(f"sweep.parent_run_id={parent_id}")
+            overrides.append(f"trial.parent_run_id={parent_id}")
         return overrides
 
     # --- the loop -----------------------------------------------------------------------------

@@ -1,8 +1,8 @@
 """The job side of an Optuna sweep: report evaluations to the trial, stop when it is pruned.
 
 The sweeper (:mod:`walkers.tuning.sweeper`) passes each job its study, storage and trial id as
-``sweep.*`` overrides; the pruner is the job's own ``sweep.pruner`` config (an
-``optuna.pruners`` class), so a sweep file chooses it and a command line can swap it.
+``trial.*`` overrides; the pruner is the job's own ``pruner`` config (an ``optuna.pruners``
+class, from ``conf/pruner/``), so a sweep file chooses it and a command line can swap it.
 
 Pruners judge intermediate values in the study's direction, and the value reported is the eval
 return (higher is better). A study that minimizes its metric (``final/steps_to_threshold``)
@@ -44,13 +44,13 @@ def make_pruner(pruner_cfg: DictConfig | None, maximize: bool = True) -> optuna.
 class TrialReporter:
     """``reporter(step, eval_return) -> True`` when the trial should stop (it was pruned)."""
 
-    def __init__(self, sweep_cfg: DictConfig):
-        study = optuna.load_study(study_name=sweep_cfg.study, storage=sweep_cfg.storage)
+    def __init__(self, trial_cfg: DictConfig, pruner_cfg: DictConfig | None):
+        study = optuna.load_study(study_name=trial_cfg.study, storage=trial_cfg.storage)
         maximize = study.direction == StudyDirection.MAXIMIZE
-        study.pruner = make_pruner(sweep_cfg.pruner, maximize)
+        study.pruner = make_pruner(pruner_cfg, maximize)
         #: +1, or -1 in a minimizing study: the sign of the eval return as the pruner sees it
         self.sign = 1.0 if maximize else -1.0
-        self.trial = optuna.trial.Trial(study, sweep_cfg.trial_id)
+        self.trial = optuna.trial.Trial(study, trial_cfg.id)
         self.pruned_at: int | None = None
 
     def __call__(self, step: int, value: float) -> bool:

@@ -45,7 +45,11 @@ def train_online(agent: Agent, env: gym.Env, book: RunBook) -> dict[str, float]:
             if _after_step(book, losses, bar):
                 return
 
-    return _running([book], loop)[0]
+    def settle() -> None:  # interrupted between observe and the count: the agent's count holds
+        if (steps := getattr(agent, "steps", None)) is not None:
+            p.step = steps
+
+    return _running([book], loop, settle=settle)[0]
 
 
 def train_offline(agent: Agent, book: RunBook) -> dict[str, float]:

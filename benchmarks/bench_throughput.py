@@ -2,16 +2,21 @@
 
     make bench-throughput          # or: .venv/bin/python benchmarks/bench_throughput.py --reps 4
 
-Walker2d-v5, reference hyperparameters for all (256-256, batch 256, one gradient step per env
-step, lr 3e-4, gamma 0.99, tau 0.005). Each contender first runs past its warm-up untimed, then
-the contenders take turns, ``--steps`` env steps a round, so machine noise hits all alike. The
-table gives the median env steps/s and the ratio to SB3's TD3 (above 1: faster). Seeds trained
-together count in aggregate: ``K=`` rows are one process with a population of K (2 threads),
-``procs x`` rows are one process per core with one thread each, as a joblib multirun runs them.
-Then: the TD3 update alone, an estimate of its FLOPs, this machine's fp32 matmul rate, and the
-memory of a full 1M-transition replay buffer. SB3 is a benchmark-only dependency
-(``pip install -e '.[bench]'``); without it the SB3 rows are skipped. A benchmark, not a test:
-nothing here asserts on time.
+Walker2d-v5, reference hyperparameters for all (256-256, batch 256, one gradient step per env step,
+lr 3e-4, gamma 0.99, tau 0.005; SAC with the learned temperature, target entropy -|A|, in both).
+Each contender first runs past its warm-up untimed, then the contenders take turns, ``--steps`` env
+steps a round, so machine noise hits all alike. The table gives the median env steps/s and the
+ratio to SB3's TD3 (above 1: faster). Seeds trained together count in aggregate: ``K=`` rows are
+one process with a population of K (2 threads), ``procs x`` rows are one process per core with one
+thread each, as a joblib multirun runs them.
+PPO has its own table, against SB3's PPO: both at the reference settings (64-64 tanh, rollouts of
+2048 steps, 10 epochs of 32 minibatches of 64, lr 3e-4, observation and reward normalization: in
+the agent for walkers, ``VecNormalize`` for SB3, as RL-Zoo runs MuJoCo); a round there is one
+rollout and its update. Then: the TD3 update alone, an estimate of its FLOPs, this machine's fp32
+matmul rate, and the memory of a full 1M-transition replay buffer. SB3 is a benchmark-only
+dependency (``pip install -e '.[bench]'``); without it the SB3 rows are skipped. ``--only PPO``
+runs only the contenders with PPO in their name. A benchmark, not a test: nothing here asserts on
+time.
 """
 
 from __future__ import annotations
@@ -27,12 +32,16 @@ from rounds import alternate, print_table
 
 from walkers.agents.base import Transition
 from walkers.agents.ddpg import DDPG
+from walkers.agents.ppo import PPO
 from walkers.agents.reinforce import Reinforce
+from walkers.agents.sac import SAC
 from walkers.agents.td3 import TD3
 from walkers.data.replay import DATA_FIELDS, ReplayBuffer
 from walkers.training.envs import env_spaces
 
 ENV_ID, HIDDEN, BATCH, WARMUP = "Walker2d-v5", 256, 256, 1_000
+PPO_ROLLOUT = 2048  # PPO's reference rollout: a PPO round is one rollout and its update
+PPO_ROWS = ("walkers PPO", "SB3 PPO")
 
 
 class WalkersLoop:
@@ -136,7 +145,46 @@ class SB3Loop:
         self.model.learn(total_timesteps=steps, reset_num_timesteps=False)
 
 
-def contenders() -> dict:
+def walkers_ppo() -> WalkersLoop:
+    """walkers' PPO at its defaults (conf/algo/ppo.yaml: the reference settings)."""
+    loop = WalkersLoop(PPO)
+    loop.round_steps = PPO_ROLLOUT
+    return loop
+
+
+class SB3PPOLoop:
+    """Stable-Baselines3's PPO at the same settings (its defaults, value clipping on as walkers'
+    default), on ``VecNormalize``; ``learn`` collects whole rollouts, so a round is one."""
+
+    round_steps = PPO_ROLLOUT
+
+    def __init__(self):
+        from stable_baselines3 import PPO as SB3PPO
+        from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+
+        env = VecNormalize(DummyVecEnv([lambda: gym.make(ENV_ID)]), gamma=0.99)
+        self.model = SB3PPO(
+            "MlpPolicy",
+            env,
+            learning_rate=3e-4,
+            n_steps=PPO_ROLLOUT,
+            batch_size=64,
+            n_epochs=10,
+            gamma=0.99,
+            gae_lambda=0.95,
+            clip_range=0.2,
+            clip_range_vf=0.2,
+            max_grad_norm=0.5,
+            policy_kwargs={"net_arch": [64, 64], "activation_fn": torch.nn.Tanh},
+            seed=0,
+            device="cpu",
+        )
+
+    def run(self, steps: int) -> None:
+        self.model.learn(total_timesteps=steps, reset_num_timesteps=False)
+
+
+def contenders(only: str | None = None) -> dict:
     common = {"lr": 3e-4, "batch_size": BATCH, "learning_starts": WARMUP}
     loops = {
         "walkers TD3": lambda: WalkersLoop(TD3, hidden_sizes=[HIDDEN, HIDDEN], **common),
@@ -144,7 +192,9 @@ def contenders() -> dict:
             TD3, hidden_sizes=[HIDDEN, HIDDEN], compile=True, **common
         ),
         "walkers DDPG": lambda: WalkersLoop(DDPG, hidden_sizes=[HIDDEN, HIDDEN], **common),
+        "walkers SAC": lambda: WalkersLoop(SAC, hidden_sizes=[HIDDEN, HIDDEN], **common),
         "walkers REINFORCE": lambda: WalkersLoop(Reinforce, hidden_sizes=[HIDDEN, HIDDEN]),
+        "walkers PPO": walkers_ppo,
         # population=K: the aggregate env steps/s of K seeds trained together
         "walkers TD3 K=2": lambda: PopulationLoop(2, hidden_sizes=[HIDDEN, HIDDEN], **common),
         "walkers TD3 K=4": lambda: PopulationLoop(4, hidden_sizes=[HIDDEN, HIDDEN], **common),
@@ -157,10 +207,15 @@ def contenders() -> dict:
     try:
         import stable_baselines3  # noqa: F401
 
-        loops |= {"SB3 TD3": lambda: SB3Loop("TD3"), "SB3 DDPG": lambda: SB3Loop("DDPG")}
+        loops |= {
+            "SB3 TD3": lambda: SB3Loop("TD3"),
+            "SB3 DDPG": lambda: SB3Loop("DDPG"),
+            "SB3 SAC": lambda: SB3Loop("SAC"),  # ent_coef="auto": the learned temperature
+        }
+        loops["SB3 PPO"] = SB3PPOLoop
     except ImportError:
         print("stable-baselines3 not installed: SB3 rows skipped (pip install -e '.[bench]')")
-    return {name: make() for name, make in loops.items()}
+    return {name: make() for name, make in loops.items() if only is None or only in name}
 
 
 def matmul_gflops(n: int = 256, reps: int = 200) -> float:
@@ -190,22 +245,34 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--reps", type=int, default=4, help="alternating rounds")
     parser.add_argument("--steps", type=int, default=1_000, help="env steps per round")
+    parser.add_argument("--only", help="the contenders whose name contains this (e.g. PPO)")
     args = parser.parse_args()
-    loops = contenders()
+    loops = contenders(args.only)
     for loop in loops.values():
         loop.run(WARMUP + 100)  # past the warm-up (and any compile): every timed step learns
 
     def steps_per_second(loop) -> float:  # env steps: a population steps K envs per loop step
+        steps = getattr(loop, "round_steps", args.steps)
         start = time.perf_counter()
-        loop.run(args.steps)
-        return args.steps * getattr(loop, "env_steps_per_step", 1) / (time.perf_counter() - start)
+        loop.run(steps)
+        return steps * getattr(loop, "env_steps_per_step", 1) / (time.perf_counter() - start)
 
     sps = alternate(loops, steps_per_second, args.reps)
-    print(
-        f"\n{ENV_ID}, learning phase, {HIDDEN}-{HIDDEN}, batch {BATCH}, 1 gradient step per env "
-        f"step, {torch.get_num_threads()} threads, {args.reps} rounds x {args.steps} steps"
-    )
-    print_table(sps, "env steps/s", baseline="SB3 TD3")
+    on_policy = {name: sps.pop(name) for name in PPO_ROWS if name in sps}
+    if sps:
+        print(
+            f"\n{ENV_ID}, learning phase, {HIDDEN}-{HIDDEN}, batch {BATCH}, 1 gradient step per "
+            f"env step, {torch.get_num_threads()} threads, {args.reps} rounds x {args.steps} steps"
+        )
+        print_table(sps, "env steps/s", baseline="SB3 TD3")
+    if on_policy:
+        print(
+            f"\n{ENV_ID}, PPO at the reference settings, {torch.get_num_threads()} threads, "
+            f"{args.reps} rounds x 1 rollout of {PPO_ROLLOUT} steps and its update"
+        )
+        print_table(on_policy, "env steps/s", baseline="SB3 PPO")
+    if "walkers TD3" not in loops:
+        return
 
     td3 = loops["walkers TD3"].agent
     spaces = env_spaces(loops["walkers TD3"].env)

@@ -15,12 +15,13 @@ from walkers.training.envs import make_env
 
 OFF_POLICY_TINY = ["algo.learning_starts=200", "algo.batch_size=64"]
 REINFORCE_TINY = ["algo.episodes_per_update=1"]
+PPO_TINY = ["algo.n_steps=128", "algo.n_minibatches=4", "algo.n_epochs=2"]  # updates 4 times
 
 
 @pytest.mark.parametrize("env", ["pendulum", "bipedal_walker", "walker2d"])
-@pytest.mark.parametrize("algo", ["reinforce", "ddpg", "td3"])
+@pytest.mark.parametrize("algo", ["reinforce", "ppo", "ddpg", "td3"])
 def test_every_algo_completes_a_tiny_run(store, algo, env):
-    extra = REINFORCE_TINY if algo == "reinforce" else OFF_POLICY_TINY
+    extra = {"reinforce": REINFORCE_TINY, "ppo": PPO_TINY}.get(algo, OFF_POLICY_TINY)
     train(compose_cfg([f"algo={algo}", f"env={env}", *TINY, *extra, *store["overrides"]]))
     (run,) = all_runs(store["client"])
     assert run.info.status == "FINISHED"
@@ -35,6 +36,8 @@ def test_every_algo_completes_a_tiny_run(store, algo, env):
         "perf/sps",
     }
     assert expected <= set(run.data.metrics)
+    if algo == "ppo":  # it learned, and says how
+        assert {"loss/policy", "loss/value", "train/approx_kl", "train/lr"} <= set(run.data.metrics)
     if env != "walker2d" or algo != "reinforce":  # short walker episodes: at least one ends
         assert "train/episode_return" in run.data.metrics
 

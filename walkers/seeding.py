@@ -24,8 +24,8 @@ STREAMS = {
     "train_env": 0,  # the training env's first reset (then its own RNG runs)
     "eval_env": 1,  # evaluation episode i starts from reset(seed=eval_start_seeds(...)[i])
     "exploration": 2,  # off-policy warm-up actions and exploration noise
-    "replay": 3,  # replay buffer / dataset batch sampling
-    "policy": 4,  # stochastic policies' action sampling (REINFORCE)
+    "replay": 3,  # replay buffer / dataset batch sampling, PPO's minibatch shuffling
+    "policy": 4,  # stochastic policies' action sampling (REINFORCE, PPO)
 }
 
 

@@ -1,9 +1,17 @@
-"""Deterministic off-policy actor-critic with experience replay: the core of DDPG and TD3.
+"""Off-policy actor-critic with experience replay: the core of DDPG, TD3 and SAC.
 
 TD3 (Fujimoto et al. 2018) is this core with ``num_critics=2`` (clipped double-Q),
 ``policy_noise > 0`` (target policy smoothing) and ``policy_delay=2`` (delayed actor and target
 updates). DDPG as the TD3 paper's "our DDPG" is the same core with one critic, no smoothing and
 no delay. :meth:`ActorCritic.update` follows Algorithm 1 of the TD3 paper line by line.
+
+SAC (:mod:`walkers.agents.sac`) shares the update's skeleton (critics, then the actor, then the
+soft target updates) and overrides what differs, each a small hook: its stochastic actor
+(:attr:`ActorCritic.actor_class`), no target actor (:attr:`ActorCritic.uses_actor_target`), the
+value the critics regress onto (:meth:`ActorCritic.next_value`), the actor loss, how an action
+is explored (:meth:`ActorCritic.policy`), the random numbers of an update
+(:meth:`ActorCritic.update_noise`), and a step after the actor's (its temperature,
+:meth:`ActorCritic.after_actor_step`).
 
 Every network is an ensemble with a leading *member* dimension: a single agent is a population of
 one, ``population=K`` trains K independent seeds (``seed, seed + 1, ...``) with one batched
@@ -22,6 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from torch import nn
 
 from walkers.agents import population as members_io
 from walkers.agents.base import Agent, Transition, resolve_device
@@ -57,6 +66,9 @@ class Member:
 
 class ActorCritic(Agent):
     """The shared core; defaults are TD3's reference hyperparameters (see conf/algo/td3.yaml)."""
+
+    actor_class: type[nn.Module] = EnsembleActor  # built as (n, obs, act, hidden, low, high)
+    uses_actor_target = True  # a target actor pi' (DDPG, TD3); SAC has none
 
     def __init__(
         self,
@@ -101,14 +113,16 @@ class ActorCritic(Agent):
         self.noise_scale = (self.action_high - self.action_low) / 2
 
         torch.manual_seed(seed)
-        self.actor = EnsembleActor(
+        self.actor = self.actor_class(
             self.population, obs_dim, act_dim, hidden_sizes, action_low, action_high
         ).to(self.device)
         critic_hidden = hidden_sizes if critic_hidden_sizes is None else critic_hidden_sizes
         self.critic = make_critic(
             critic_architecture, obs_dim, act_dim, critic_hidden, num_critics * self.population
         ).to(self.device)
-        self.actor_target = copy.deepcopy(self.actor).requires_grad_(False)
+        self.actor_target = (
+            copy.deepcopy(self.actor).requires_grad_(False) if self.uses_actor_target else None
+        )
         self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
         self.actor_optimizer = torch.optim.Adam(
             self.actor.parameters(), lr=actor_lr or lr, fused=True
@@ -161,12 +175,20 @@ class ActorCritic(Agent):
         if explore and self.steps < self.random_until:  # uniform random warm-up
             uniform = [m.rng.uniform(self.action_low, self.action_high) for m in self.members]
             return np.stack(uniform).astype(np.float32)
+        noise = np.stack([m.noise.sample() for m in self.members]) if explore else None
         with torch.no_grad():
             obs_t = torch.as_tensor(obs, dtype=torch.float32, device=self.device)
-            actions = self.actor(obs_t.unsqueeze(1))[:, 0].cpu().numpy()
-        if explore:
-            noise = np.stack([m.noise.sample() for m in self.members]) * self.noise_scale
-            actions = np.clip(actions + noise, self.action_low, self.action_high)
+            return self.policy(obs_t.unsqueeze(1), noise)
+
+    def policy(self, obs: torch.Tensor, noise: np.ndarray | None) -> np.ndarray:
+        """``(K, act_dim)`` actions for ``(K, 1, obs_dim)`` observations; ``noise``: each
+        member's exploration noise ``(K, act_dim)``, or None for the greedy policy.
+
+        Deterministic actors: pi(s) plus the noise (a fraction of the action half-range),
+        clipped to the bounds."""
+        actions = self.actor(obs)[:, 0].cpu().numpy()
+        if noise is not None:
+            actions = np.clip(actions + noise * self.noise_scale, self.action_low, self.action_high)
         return actions.astype(np.float32)
 
     def observe_population(self, transitions: Sequence[Transition]) -> None:
@@ -188,56 +210,82 @@ class ActorCritic(Agent):
             return {}
         self.num_updates += 1
         b = self.sample()  # a mini-batch of N transitions (s, a, r, s', d) per member
+        critic_noise, actor_noise = self.update_noise(b)
 
-        # Critic: y = r + gamma (1 - d) min_j Q'_j(s', a~);  theta_i <- argmin N^-1 sum (y - Q_i)^2
-        smoothing_noise = torch.randn_like(b.action) if self.policy_noise > 0 else None
-        critic_loss, q_mean = self._critic_loss(b, smoothing_noise)
+        # Critic: y = r + gamma (1 - d) V'(s');  theta_i <- argmin N^-1 sum (y - Q_i)^2
+        critic_loss, q_mean = self._critic_loss(b, critic_noise)
         critic_bad = guarded_step(self.critic_optimizer, critic_loss, self.num_critics)
         self.guard.record(critic_bad)
         metrics = {"loss/critic": _logged(critic_loss), "train/q_mean": _logged(q_mean)}
 
-        # Every d updates: the deterministic policy gradient on Q_1, then the soft target updates
-        # phi' <- tau phi + (1 - tau) phi', theta' <- tau theta + (1 - tau) theta'.
+        # Every d updates: the policy gradient (DDPG/TD3: deterministic, on Q_1), then the soft
+        # target updates theta' <- tau theta + (1 - tau) theta', phi' <- tau phi + (1 - tau) phi'.
         if self.num_updates % self.policy_delay == 0:
             self.critic.requires_grad_(False)  # the actor's gradient only: no critic weight grads
-            actor_loss = self._actor_loss(b.obs)
+            actor_loss, actor_info = self._actor_loss(b.obs, actor_noise)
             self.critic.requires_grad_(True)
             # critic_bad, not the critic loss: under CUDA graphs the actor-loss run has already
             # reclaimed the critic-loss run's outputs.
             guarded_step(self.actor_optimizer, actor_loss, 1, also_bad=critic_bad)
-            soft_update(self.critic_target, self.critic, self.tau)
-            soft_update(self.actor_target, self.actor, self.tau)
             metrics["loss/actor"] = _logged(actor_loss)
+            metrics |= self.after_actor_step(actor_info, critic_bad)
+            soft_update(self.critic_target, self.critic, self.tau)
+            if self.actor_target is not None:
+                soft_update(self.actor_target, self.actor, self.tau)
         return metrics | self.guard.metrics()
 
+    def update_noise(self, b: Batch) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+        """The random numbers of one update, for the critic loss and the actor loss: drawn
+        outside them so a compiled update draws the same numbers as eager. TD3: the target
+        smoothing noise eps ~ N(0, 1) (none without smoothing); the actor needs none."""
+        return (torch.randn_like(b.action) if self.policy_noise > 0 else None), None
+
     def critic_loss(
-        self, b: Batch, smoothing_noise: torch.Tensor | None
+        self, b: Batch, noise: torch.Tensor | None
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Per-member critic loss ``(K,)`` (the sum of its critics' MSEs) and mean Q ``(K,)``.
 
-        Every Q_i regresses onto y = r + gamma * (1 - terminated) * min_j Q'_j(s', a~) with
-        a~ = clip(pi'(s') + clip(sigma * eps, -c, c), low, high), eps ~ N(0, 1) given as
-        ``smoothing_noise`` (drawn outside so a compiled update draws the same numbers as eager).
+        Every Q_i regresses onto y = r + gamma * (1 - terminated) * V'(s'), V' being
+        :meth:`next_value` (``noise``: the critic's part of :meth:`update_noise`).
         """
         K, C = self.population, self.num_critics
         with torch.no_grad():
-            next_action = self.actor_target(b.next_obs)
-            if smoothing_noise is not None:
-                eps = (smoothing_noise * self.policy_noise).clamp(-self.noise_clip, self.noise_clip)
-                next_action = (next_action + eps * self.actor.action_scale).clamp(
-                    self.low_t, self.high_t
-                )
-            next_q = self.critic_target(self._per_critic(b.next_obs), self._per_critic(next_action))
-            next_q = next_q.unflatten(0, (K, C)).min(dim=1).values  # clipped double-Q: (K, N)
-            y = b.reward + self.gamma * (1.0 - b.terminated) * next_q
+            y = b.reward + self.gamma * (1.0 - b.terminated) * self.next_value(b.next_obs, noise)
         q = self.critic(self._per_critic(b.obs), self._per_critic(b.action)).unflatten(0, (K, C))
         member_loss = (q - y.unsqueeze(1)).pow(2).mean(dim=2).sum(dim=1)
         return member_loss, q.detach().mean(dim=(1, 2))
 
-    def actor_loss(self, obs: torch.Tensor) -> torch.Tensor:
-        """Per-member actor loss ``(K,)``: -Q_1(s, pi(s)), the deterministic policy gradient."""
+    def next_value(self, next_obs: torch.Tensor, noise: torch.Tensor | None) -> torch.Tensor:
+        """V'(s') ``(K, N)`` of the critic target. DDPG/TD3: min_j Q'_j(s', a~) with
+        a~ = clip(pi'(s') + clip(sigma * eps, -c, c), low, high), eps ~ N(0, 1) = ``noise``
+        (target policy smoothing; None: a~ = pi'(s'))."""
+        next_action = self.actor_target(next_obs)
+        if noise is not None:
+            eps = (noise * self.policy_noise).clamp(-self.noise_clip, self.noise_clip)
+            next_action = (next_action + eps * self.actor.action_scale).clamp(
+                self.low_t, self.high_t
+            )
+        return self.min_target_q(next_obs, next_action)
+
+    def min_target_q(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """min_j Q'_j(s, a) ``(K, N)`` over each member's target critics (clipped double-Q)."""
+        next_q = self.critic_target(self._per_critic(obs), self._per_critic(action))
+        return next_q.unflatten(0, (self.population, self.num_critics)).min(dim=1).values
+
+    def actor_loss(
+        self, obs: torch.Tensor, noise: torch.Tensor | None
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Per-member actor loss ``(K,)`` and what :meth:`after_actor_step` needs of it (here
+        nothing): -Q_1(s, pi(s)), the deterministic policy gradient."""
         q_pi = self.critic(obs, self.actor(obs), members=slice(0, None, self.num_critics))
-        return -q_pi.mean(dim=-1)
+        return -q_pi.mean(dim=-1), None
+
+    def after_actor_step(
+        self, actor_info: torch.Tensor | None, skip: torch.Tensor
+    ) -> dict[str, torch.Tensor]:
+        """A step after the actor's, before the target updates (SAC: the temperature); its
+        metrics. ``skip``: members whose update is skipped (a non-finite critic loss)."""
+        return {}
 
     def sample(self) -> Batch:
         """One mini-batch per member, stacked: ``(K, batch, ...)`` tensors."""
@@ -300,6 +348,16 @@ class ActorCritic(Agent):
         return {"walkers.buffer_refill": f"steps {self.refilled_at}-{self.update_after}"}
 
     # --- a population's members one at a time (walkers.agents.population) -------------------
+    def member_cuts(self, i: int) -> dict[str, slice]:
+        """Member ``i``'s slice of the leading dimension of every per-member part, by attribute
+        name: modules (their state dicts) and optimizers (their Adam moments). A member's
+        checkpoint holds these parts, cut; a subclass with more parts adds them here."""
+        own, critics = slice(i, i + 1), slice(i * self.num_critics, (i + 1) * self.num_critics)
+        cuts = {"actor": own, "critic": critics, "actor_target": own, "critic_target": critics}
+        if self.actor_target is None:
+            del cuts["actor_target"]
+        return cuts | {"actor_optimizer": own, "critic_optimizer": critics}
+
     def member_policy(self, i: int) -> members_io.MemberAgent:
         """Member ``i`` as an agent of its own (evaluation rollouts, its checkpoints)."""
         return members_io.MemberAgent(self, i)

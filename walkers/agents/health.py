@@ -80,10 +80,10 @@ def guarded_step(
         bad = torch.maximum(bad, also_bad)
     optimizer.found_inf = bad.min()
     if bad.numel() > 1:  # one agent: found_inf skips the step already
-        skip = (bad > 0).repeat_interleave(copies).view(-1, 1, 1)
+        skip = (bad > 0).repeat_interleave(copies)
         for group in optimizer.param_groups:
             for param in group["params"]:
-                if param.grad is not None:
-                    param.grad.masked_fill_(skip, 0.0)
+                if param.grad is not None:  # members lead every parameter's dimensions
+                    param.grad.masked_fill_(skip.view(-1, *(1,) * (param.dim() - 1)), 0.0)
     optimizer.step()
     return bad

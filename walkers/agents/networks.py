@@ -1,8 +1,8 @@
-"""Networks: MLPs, and the deterministic actors and critics of DDPG/TD3 as *ensembles*.
+"""Networks: MLPs, and the actors and critics of DDPG/TD3/SAC as *ensembles*.
 
 Every layer of an ensemble holds the weights of all its members stacked along a leading
-dimension and runs them with one batched matmul. TD3's twin critics are an ensemble of two;
-DDPG's single critic an ensemble of one; a single agent's actor an ensemble of one, a seed
+dimension and runs them with one batched matmul. TD3's and SAC's twin critics are an ensemble of
+two; DDPG's single critic an ensemble of one; a single agent's actor an ensemble of one, a seed
 population's actors an ensemble of K (so a member's weights have one layout everywhere).
 Members share no parameters, so optimizing an ensemble with an elementwise optimizer (Adam)
 trains each member independently.
@@ -74,6 +74,85 @@ class EnsembleActor(nn.Module):
         for layer in self.layers[:-1]:
             x = F.relu(layer(x, members))
         return torch.tanh(self.layers[-1](x, members)) * self.action_scale + self.action_bias
+
+
+def tanh_log_det_jacobian(u: torch.Tensor) -> torch.Tensor:
+    """log(1 - tanh(u)^2), elementwise, computed stably as 2 (log 2 - u - softplus(-2u)).
+
+    (1 - tanh(u)^2 = 4 / (e^u + e^-u)^2, whose log is the right-hand side; the naive form is
+    log(0) = -inf once tanh(u) rounds to +-1, i.e. for |u| >~ 9 in float32.)
+    """
+    return 2.0 * (math.log(2.0) - u - F.softplus(-2.0 * u))
+
+
+class EnsembleGaussianActor(nn.Module):
+    """``n`` independent squashed Gaussian policies (SAC): a = tanh(u) scaled onto the action
+    bounds, u ~ N(mu_i(s), sigma_i(s)^2), with mean and log-std from one MLP per member (the
+    last layer outputs both, so every layer is one batched matmul for all members).
+
+    ``forward`` is the deterministic policy tanh(mu(s)) (evaluation, a member's greedy act);
+    :meth:`sample` the reparameterized sample and its log-probability. log sigma is clamped to
+    [``LOG_STD_MIN``, ``LOG_STD_MAX``] (the reference implementations' bounds).
+    """
+
+    LOG_STD_MIN, LOG_STD_MAX = -20.0, 2.0
+
+    def __init__(self, n, obs_dim, act_dim, hidden_sizes, action_low, action_high):
+        super().__init__()
+        dims = [obs_dim, *hidden_sizes, 2 * act_dim]  # the head: mean and log-std
+        self.layers = nn.ModuleList(
+            EnsembleLinear(n, a, b) for a, b in zip(dims[:-1], dims[1:], strict=True)
+        )
+        low = torch.as_tensor(action_low, dtype=torch.float32)
+        high = torch.as_tensor(action_high, dtype=torch.float32)
+        self.register_buffer("action_scale", (high - low) / 2, persistent=False)
+        self.register_buffer("action_bias", (high + low) / 2, persistent=False)
+
+    def distribution(
+        self, obs: torch.Tensor, members: slice = slice(None)
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """mu(s) and log sigma(s) (clamped), each ``(n, batch, act)``."""
+        x = obs
+        for layer in self.layers[:-1]:
+            x = F.relu(layer(x, members))
+        mean, log_std = self.layers[-1](x, members).chunk(2, dim=-1)
+        return mean, log_std.clamp(self.LOG_STD_MIN, self.LOG_STD_MAX)
+
+    def forward(self, obs: torch.Tensor, members: slice = slice(None)) -> torch.Tensor:
+        """The deterministic policy: tanh(mu(s)), scaled."""
+        mean, _ = self.distribution(obs, members)
+        return torch.tanh(mean) * self.action_scale + self.action_bias
+
+    def sample(
+        self, obs: torch.Tensor, eps: torch.Tensor, members: slice = slice(None)
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """a = tanh(mu + sigma * eps) scaled, for given eps ~ N(0, I) ``(n, batch, act)``, and
+        log pi(a|s) ``(n, batch)``: the Gaussian's log-density at u = mu + sigma * eps minus
+        sum_k log(1 - tanh(u_k)^2) (change of variables through tanh; SAC paper, appendix C).
+
+        The density is that of the squashed action in [-1, 1]^act (as the reference
+        implementations, whose envs act in [-1, 1]); the constant -sum log(action_scale) of
+        the final rescaling is left out, so the target entropy keeps its meaning for any bounds.
+        """
+        mean, log_std = self.distribution(obs, members)
+        u = mean + log_std.exp() * eps
+        gaussian = (-0.5 * eps.pow(2) - log_std - 0.5 * math.log(2 * math.pi)).sum(dim=-1)
+        log_prob = gaussian - tanh_log_det_jacobian(u).sum(dim=-1)
+        return torch.tanh(u) * self.action_scale + self.action_bias, log_prob
+
+
+class Temperature(nn.Module):
+    """SAC's learned entropy temperature, one per member: alpha_i = exp(log_alpha_i), ``(n,)``.
+
+    Learned in log space (positive, and the reference implementations' parameterization)."""
+
+    def __init__(self, n: int, initial: float = 1.0):
+        super().__init__()
+        self.log_alpha = nn.Parameter(torch.full((n,), math.log(initial)))
+
+    def forward(self) -> torch.Tensor:
+        """alpha ``(n,)``, detached: the critic target and actor loss treat it as a constant."""
+        return self.log_alpha.detach().exp()
 
 
 class EnsembleLayerNorm(nn.Module):

@@ -2,7 +2,8 @@
 
 An :class:`~walkers.agents.actor_critic.ActorCritic` with ``population=K`` holds K members along
 the leading dimension of every network, optimizer moment and guard counter (the critics C per
-member), and a :class:`~walkers.agents.actor_critic.Member` each. A single agent is the same with
+member; which parts, and each member's slice of them, the agent declares in ``member_cuts``), and
+a :class:`~walkers.agents.actor_critic.Member` each. A single agent is the same with
 K = 1, so member ``i`` cut out (:func:`member_state_dict`) is exactly a single agent's
 ``state_dict()``, and a population's is the list of its members'. A member's state loads into an
 ordinary agent (``walkers.evaluate``, ``walkers.collect``, ``resume=`` to continue it alone) or
@@ -21,31 +22,25 @@ from walkers.agents.base import Agent, Transition
 if TYPE_CHECKING:
     from walkers.agents.actor_critic import ActorCritic
 
-NETWORKS = ("actor", "critic", "actor_target", "critic_target")
 ADAM_MOMENTS = ("exp_avg", "exp_avg_sq")
 
 
-def _cuts(agent: ActorCritic, i: int) -> dict[str, slice]:
-    """Member ``i``'s slice of each network's (and its optimizer's) leading dimension."""
-    own, critics = slice(i, i + 1), slice(i * agent.num_critics, (i + 1) * agent.num_critics)
-    return {"actor": own, "actor_target": own, "critic": critics, "critic_target": critics}
-
-
 def member_state_dict(agent: ActorCritic, i: int, with_buffer: bool = False) -> dict:
-    """Member ``i`` of ``agent`` as a single agent's ``state_dict()``: its networks, targets,
-    Adam moments, RNG, noise, buffer and guard counters; the shared counters."""
-    cuts = _cuts(agent, i)
-    state = {
-        name: {k: v[cuts[name]].clone() for k, v in getattr(agent, name).state_dict().items()}
-        for name in NETWORKS
-    }
-    for name in ("actor", "critic"):
-        optimizer_state = getattr(agent, f"{name}_optimizer").state_dict()
-        for index, moments in list(optimizer_state["state"].items()):
-            # a new dict: state_dict() shares the live tensors
-            cut = {key: moments[key][cuts[name]].clone() for key in ADAM_MOMENTS}
-            optimizer_state["state"][index] = moments | cut
-        state[f"{name}_optimizer"] = optimizer_state
+    """Member ``i`` of ``agent`` as a single agent's ``state_dict()``: its slice of every
+    per-member part (``agent.member_cuts``: networks, targets, Adam moments, ...), its RNG,
+    noise, buffer and guard counters; the shared counters."""
+    state = {}
+    for name, cut in agent.member_cuts(i).items():
+        part = getattr(agent, name)
+        if isinstance(part, torch.optim.Optimizer):
+            optimizer_state = part.state_dict()
+            for index, moments in list(optimizer_state["state"].items()):
+                # a new dict: state_dict() shares the live tensors
+                sliced = {key: moments[key][cut].clone() for key in ADAM_MOMENTS}
+                optimizer_state["state"][index] = moments | sliced
+            state[name] = optimizer_state
+        else:
+            state[name] = {k: v[cut].clone() for k, v in part.state_dict().items()}
     shared = ("steps", "num_updates", "random_until", "update_after")
     return state | {
         **{key: getattr(agent, key) for key in shared},
@@ -61,28 +56,33 @@ def load_member_state_dict(agent: ActorCritic, i: int, state: dict) -> None:
     Counters (env steps, updates, Adam's step count) are shared, so every member must be at the
     same update (``walkers.train`` checks); they are taken from the last member loaded.
     """
-    cuts = _cuts(agent, i)
-    for name in NETWORKS:
-        for key, value in getattr(agent, name).state_dict().items():
-            value[cuts[name]] = state[name][key]
-    for name in ("actor", "critic"):
-        optimizer = getattr(agent, f"{name}_optimizer")
-        saved_state = state[f"{name}_optimizer"]["state"]
-        params = [p for group in optimizer.param_groups for p in group["params"]]
-        for index, param in enumerate(params):  # the indices of optimizer.state_dict()
-            if index not in saved_state:
-                continue  # the member never stepped this parameter
-            saved, live = saved_state[index], optimizer.state[param]
-            if not live:  # a fresh optimizer: create its state as its first step would
-                live["step"] = saved["step"].clone().to(param.device)
-                live |= {key: torch.zeros_like(param) for key in ADAM_MOMENTS}
-            for key in ADAM_MOMENTS:
-                live[key][cuts[name]] = saved[key].to(param.device)
-            live["step"].copy_(saved["step"])
+    for name, cut in agent.member_cuts(i).items():
+        part = getattr(agent, name)
+        if isinstance(part, torch.optim.Optimizer):
+            _load_optimizer_member(part, cut, state[name]["state"])
+        else:
+            for key, value in part.state_dict().items():
+                value[cut] = state[name][key]
     agent.load_counters(state)
     agent.members[i].load_state_dict(state)
     agent.guard.load_member_state_dict(i, state["guard"])
     agent.refill_if_lost(state["buffer"])
+
+
+def _load_optimizer_member(optimizer: torch.optim.Optimizer, cut: slice, saved_state: dict):
+    """A member's Adam moments (``saved_state``: its optimizer ``state_dict()["state"]``) into
+    the ``cut`` of ``optimizer``'s."""
+    params = [p for group in optimizer.param_groups for p in group["params"]]
+    for index, param in enumerate(params):  # the indices of optimizer.state_dict()
+        if index not in saved_state:
+            continue  # the member never stepped this parameter
+        saved, live = saved_state[index], optimizer.state[param]
+        if not live:  # a fresh optimizer: create its state as its first step would
+            live["step"] = saved["step"].clone().to(param.device)
+            live |= {key: torch.zeros_like(param) for key in ADAM_MOMENTS}
+        for key in ADAM_MOMENTS:
+            live[key][cut] = saved[key].to(param.device)
+        live["step"].copy_(saved["step"])
 
 
 class MemberAgent(Agent):

@@ -30,37 +30,13 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 from torch import nn
-from torch.distributions import Normal
 
 from walkers.agents.base import Agent, Transition, resolve_device
 from walkers.agents.health import NonFiniteGuard
 from walkers.agents.networks import mlp
-from walkers.data.episodes import EpisodeBuffer
+from walkers.agents.policies import GaussianPolicy
+from walkers.data.rollouts import Rollout, returns_to_go
 from walkers.seeding import torch_generator
-
-
-def returns_to_go(rewards: np.ndarray, gamma: float) -> np.ndarray:
-    """G_t = r_t + gamma * G_{t+1}, computed backwards over one episode."""
-    out = np.zeros_like(rewards, dtype=np.float32)
-    running = 0.0
-    for t in range(len(rewards) - 1, -1, -1):
-        running = rewards[t] + gamma * running
-        out[t] = running
-    return out
-
-
-class GaussianPolicy(nn.Module):
-    def __init__(self, obs_dim, act_dim, hidden_sizes, log_std_init, log_std_min, log_std_max):
-        super().__init__()
-        self.mean = mlp(obs_dim, act_dim, hidden_sizes)
-        self.log_std = nn.Parameter(torch.full((act_dim,), float(log_std_init)))
-        self.log_std_min, self.log_std_max = log_std_min, log_std_max
-
-    def forward(self, obs: torch.Tensor) -> Normal:
-        log_std = self.log_std
-        if self.log_std_min is not None or self.log_std_max is not None:
-            log_std = log_std.clamp(self.log_std_min, self.log_std_max)
-        return Normal(self.mean(obs), log_std.exp())
 
 
 class Reinforce(Agent):
@@ -92,8 +68,9 @@ class Reinforce(Agent):
         self.action_low = np.asarray(action_low, dtype=np.float32)
         self.action_high = np.asarray(action_high, dtype=np.float32)
         torch.manual_seed(seed)
+        act_dim = len(self.action_low)
         self.policy = GaussianPolicy(
-            obs_dim, len(self.action_low), hidden_sizes, log_std_init, log_std_min, log_std_max
+            mlp(obs_dim, act_dim, hidden_sizes), act_dim, log_std_init, log_std_min, log_std_max
         ).to(self.device)
         self.optimizer = torch.optim.Adam(self.policy.parameters(), lr=lr, fused=True)
         self.value = self.value_optimizer = None
@@ -102,7 +79,7 @@ class Reinforce(Agent):
             self.value_optimizer = torch.optim.Adam(
                 self.value.parameters(), lr=baseline_lr, fused=True
             )
-        self.episodes = EpisodeBuffer()
+        self.episodes = Rollout()  # whole episodes are learned from, an unfinished one waits
         self.steps = 0
         self.guard = NonFiniteGuard(self.device)
         self.generator = torch_generator(seed, "policy", self.device)
@@ -122,7 +99,7 @@ class Reinforce(Agent):
         return np.clip(self._last_sample, self.action_low, self.action_high)
 
     def observe(self, t: Transition) -> None:
-        self.episodes.add(t.obs, self._last_sample, t.reward, t.episode_over)
+        self.episodes.add(t.episode_over, obs=t.obs, actions=self._last_sample, rewards=t.reward)
         self.steps += 1
 
     # --- learning -----------------------------------------------------------------------------

@@ -1,4 +1,5 @@
-"""Whole episodes: recorded (offline datasets) and collected for Monte-Carlo updates (REINFORCE)."""
+"""Recorded episodes (offline datasets). On-policy agents collect theirs in
+:class:`walkers.data.rollouts.Rollout`."""
 
 from __future__ import annotations
 
@@ -19,33 +20,3 @@ class Episode(NamedTuple):
     @property
     def episode_return(self) -> float:
         return float(np.sum(self.rewards))
-
-
-class EpisodeBuffer:
-    """Whole episodes of (obs, action, reward) for Monte-Carlo policy gradients."""
-
-    def __init__(self):
-        self.episodes: list[dict[str, np.ndarray]] = []
-        self._obs, self._actions, self._rewards = [], [], []
-
-    def add(self, obs, action, reward: float, episode_over: bool) -> None:
-        self._obs.append(np.asarray(obs, dtype=np.float32))
-        self._actions.append(np.asarray(action, dtype=np.float32))
-        self._rewards.append(float(reward))
-        if episode_over:
-            self.episodes.append(
-                {
-                    "obs": np.stack(self._obs),
-                    "actions": np.stack(self._actions),
-                    "rewards": np.asarray(self._rewards, dtype=np.float32),
-                }
-            )
-            self._obs, self._actions, self._rewards = [], [], []
-
-    @property
-    def num_episodes(self) -> int:
-        return len(self.episodes)
-
-    def pop_episodes(self) -> list[dict[str, np.ndarray]]:
-        episodes, self.episodes = self.episodes, []
-        return episodes

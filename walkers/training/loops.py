@@ -4,10 +4,11 @@
     offline:     update (a gradient step on the dataset) -> book.after_step
     population:  act all -> step each env -> observe all -> one update -> each book.after_step
 
-Off-policy agents learn every step after their warm-up, on-policy ones when a batch of episodes
-is complete: the agent decides inside ``update()``, the loop is the same. Every loop ends the
-same way (:func:`_running`): a progress bar, the throughput over the session, and on Ctrl-C
-(or SIGTERM turned into one) a last checkpoint of every run before the interrupt propagates.
+Off-policy agents learn every step after their warm-up, on-policy ones when their batch is
+complete (REINFORCE: episodes; PPO: a rollout of steps): the agent decides inside ``update()``,
+the loop is the same. Every loop ends the same way (:func:`_running`): a progress bar, the
+throughput over the session, and on Ctrl-C (or SIGTERM turned into one) a last checkpoint of
+every run before the interrupt propagates.
 """
 
 from __future__ import annotations

@@ -62,6 +62,8 @@ def load_run(client, cfg: DictConfig, overrides, run_id: str | None = None):
     for key in RESUME_OVERRIDABLE:
         if key in given:
             stored[key] = cfg[key]
+    if "total_steps" in stored.get("algo", {}):  # a schedule over the budget (ppo's annealing)
+        stored.algo.total_steps = stored.total_steps  # follows a new one
     stored.tracking = cfg.tracking
     stored.resume = run_id
     return stored, state

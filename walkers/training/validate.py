@@ -88,6 +88,9 @@ RULES: list[tuple[str, callable, str]] = [
     ("algo.policy_noise", non_negative, "a number >= 0"),
     ("algo.noise_clip", non_negative, "a number >= 0"),
     ("algo.exploration_noise", non_negative, "a number >= 0"),
+    ("algo.alpha_init", positive, "a number > 0"),
+    ("algo.alpha_lr", positive_or_null, "null or a number > 0"),
+    ("algo.target_entropy", lambda v: v is None or _number(v), "null (-|A|) or a number"),
     ("algo.compile", lambda v: isinstance(v, bool), "true or false"),
     ("algo.context_length", positive_int, "an integer > 0"),
     ("algo.embed_dim", positive_int, "an integer > 0"),
@@ -99,6 +102,19 @@ RULES: list[tuple[str, callable, str]] = [
     ("algo.grad_clip", positive, "a number > 0"),
     ("algo.return_scale", positive, "a number > 0"),
     ("algo.max_episode_steps", positive_int, "an integer > 0"),
+    ("algo.max_grad_norm", positive_or_null, "null or a number > 0"),
+    ("algo.n_steps", positive_int, "an integer > 0"),
+    ("algo.n_epochs", positive_int, "an integer > 0"),
+    ("algo.n_minibatches", positive_int, "an integer > 0"),
+    ("algo.gae_lambda", lambda v: _number(v) and 0 <= v <= 1, "a number in [0, 1]"),
+    ("algo.clip_coef", positive, "a number > 0"),
+    ("algo.vf_coef", non_negative, "a number >= 0"),
+    ("algo.ent_coef", non_negative, "a number >= 0"),
+    ("algo.target_kl", positive_or_null, "null or a number > 0"),
+    ("algo.activation", lambda v: v in ("tanh", "relu"), "tanh or relu"),
+    ("algo.adam_eps", positive, "a number > 0"),
+    ("algo.clip_obs", positive, "a number > 0"),
+    ("algo.clip_reward", positive, "a number > 0"),
     (
         "algo.target_returns",
         lambda v: v is None or (isinstance(v, list) and len(v) > 0 and all(map(_number, v))),
@@ -128,7 +144,7 @@ def _check_population(cfg: DictConfig) -> None:
     if not hasattr(get_class(cfg.algo._target_), "act_population"):
         raise ConfigError(
             f"population={k} is not allowed with algo={cfg.algo.name}: "
-            "only td3 and ddpg train seed populations"
+            "only td3, ddpg and sac train seed populations"
         )
     for key, unsupported in (("video_every", cfg.video_every), ("a sweep", cfg.trial.id)):
         if unsupported:
@@ -181,6 +197,13 @@ def validate(cfg: DictConfig) -> None:
             algo.batch_size,
             algo.batch_size <= algo.buffer_size,
             f"at most algo.buffer_size ({algo.buffer_size})",
+        )
+    if "n_minibatches" in algo and "n_steps" in algo:
+        check(
+            "algo.n_minibatches",
+            algo.n_minibatches,
+            algo.n_minibatches <= algo.n_steps,
+            f"at most algo.n_steps ({algo.n_steps}): a minibatch holds at least one step",
         )
     if cfg.device == "cuda":
         import torch

@@ -27,6 +27,10 @@ ab: $(STAMP)  ## a small A/B end to end in minutes: REINFORCE vs TD3 on Pendulum
 	$(PY) -m walkers.train -m experiment=ab_pendulum hydra/launcher=joblib $(ARGS)
 	$(PY) -m walkers.compare env=pendulum algos=[reinforce,td3] tracking.experiment=ab_pendulum
 
+ab-all: $(STAMP)  ## the extended A/B in minutes: REINFORCE, PPO, DDPG, TD3, SAC x 5 seeds on InvertedPendulum, then a report
+	$(PY) -m walkers.train -m experiment=ab_all_inverted_pendulum hydra/launcher=joblib $(ARGS)
+	$(PY) -m walkers.compare env=inverted_pendulum algos=[reinforce,ppo,ddpg,td3,sac] tracking.experiment=ab_all_inverted_pendulum
+
 offline: $(STAMP)  ## offline RL end to end in minutes: TD3 on Pendulum -> Minari dataset -> Decision Transformer -> report
 	$(PY) -m walkers.train experiment=offline_pendulum_td3 $(ARGS)
 	$(PY) -m walkers.collect run_id=latest env=pendulum tracking.experiment=offline_pendulum episodes=40 dataset=walkers/pendulum/td3-demo overwrite=true
@@ -42,7 +46,7 @@ test: $(STAMP)  ## run the test suite (real tiny trainings, sweeps, offline RL, 
 bench: $(STAMP)  ## benchmarks: the TD3 update vs a plain eager implementation, side by side
 	$(PY) benchmarks/bench_update.py $(ARGS)
 
-bench-throughput: $(STAMP)  ## env steps/s of walkers TD3/DDPG/REINFORCE vs Stable-Baselines3 on Walker2d (installs SB3)
+bench-throughput: $(STAMP)  ## env steps/s of walkers TD3/DDPG/SAC/PPO/REINFORCE vs Stable-Baselines3 on Walker2d (installs SB3)
 	$(VENV)/bin/pip install --quiet -e '.[bench]'
 	$(PY) benchmarks/bench_throughput.py $(ARGS)
 
@@ -61,4 +65,4 @@ clean:  ## remove run outputs (mlflow.db, mlartifacts/, outputs/, multirun/, .wa
 	rm -rf mlflow.db mlruns mlartifacts outputs multirun .walkers reports .pytest_cache .ruff_cache
 	find . -name __pycache__ -type d -prune -not -path './$(VENV)/*' -exec rm -rf {} +
 
-.PHONY: help install train ab offline compare test bench bench-throughput bench-learning lint ui clean
+.PHONY: help install train ab ab-all offline compare test bench bench-throughput bench-learning lint ui clean

@@ -82,6 +82,48 @@ def test_presets_override_the_train_defaults():
     assert compose_cfg(["sweeps=td3_walker2d"]).total_steps == 300_000
 
 
+def compose_with_hydra(overrides: list[str]):
+    with initialize_config_dir(config_dir=CONF_DIR):
+        return compose("train", overrides=overrides, return_hydra_config=True)
+
+
+def swept(experiment: str, key: str) -> str | None:
+    """What an experiment preset's multirun sweeps ``key`` over (hydra.sweeper.params)."""
+    cfg = compose_with_hydra([f"experiment={experiment}"])
+    return OmegaConf.select(cfg, f"hydra.sweeper.params.{key}", default=None)
+
+
+# The algo.* keys an A/B preset may set for every arm: small nets in the cheap twins (64-64 is
+# REINFORCE's and PPO's own size). Anything else would make an arm other than its algorithm.
+AB_PRESET_ALGO_KEYS = {
+    "ab_pendulum": {"hidden_sizes"},
+    "ab_all_inverted_pendulum": {"hidden_sizes"},
+}
+
+
+@pytest.mark.parametrize("experiment", GROUPS["experiment"])
+def test_ab_presets_keep_every_algorithm_its_own_settings(experiment):
+    algos = swept(experiment, "algo")
+    for algo in algos.split(",") if algos else []:
+        cfg = compose_with_hydra([f"experiment={experiment}", f"algo={algo}"])  # one job's config
+        validate(cfg)
+        mine = OmegaConf.to_container(cfg.algo, resolve=True)
+        env = cfg.hydra.runtime.choices.env
+        own = compose_cfg([f"algo={algo}", f"env={env}", f"total_steps={cfg.total_steps}"])
+        own = OmegaConf.to_container(own.algo, resolve=True)
+        changed = {k for k in mine.keys() | own.keys() if mine.get(k) != own.get(k)}
+        assert changed <= AB_PRESET_ALGO_KEYS.get(experiment, set()), (algo, changed)
+        if algo in ("reinforce", "ppo"):  # their reference nets, whatever the preset
+            assert mine["hidden_sizes"] == [64, 64], algo
+
+
+@pytest.mark.parametrize("experiment", ["ab_walker2d_all", "ab_all_inverted_pendulum"])
+def test_the_extended_study_and_its_twin_run_all_five_algorithms_over_5_seeds(experiment):
+    assert swept(experiment, "algo") == "reinforce,ppo,ddpg,td3,sac"
+    assert swept(experiment, "seed") == "range(5)"
+    assert compose_cfg([f"experiment={experiment}"]).tracking.experiment == experiment
+
+
 SWEEPS = sorted(p.stem for p in (PROJECT_ROOT / "sweeps").glob("*.yaml"))
 
 

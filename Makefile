@@ -41,7 +41,13 @@ compare: $(STAMP)  ## A/B report from finished runs (ARGS="env=walker2d algos=[r
 	$(PY) -m walkers.compare $(ARGS)
 
 test: $(STAMP)  ## run the test suite (real tiny trainings, sweeps, offline RL, reports; one worker per core)
-	$(PY) -m pytest -q -n auto --dist loadscope --durations=10 $(ARGS)
+	$(PY) -m pytest -q -n auto --dist loadscope --durations=10 -m "not cluster" $(ARGS)
+
+test-cluster: $(STAMP)  ## the scale-out tests: a real Ray cluster on loopback, PostgreSQL, an MLflow server (minutes)
+	$(PY) -m pytest -q -m cluster --durations=10 $(ARGS)
+
+stack: $(STAMP)  ## PostgreSQL + an MLflow server on it for a team or a cluster, until Ctrl-C (prints the URIs; MLFLOW_PORT=...)
+	$(PY) -m walkers.stack --port $(MLFLOW_PORT) $(ARGS)
 
 bench: $(STAMP)  ## benchmarks: the TD3 update vs a plain eager implementation, side by side
 	$(PY) benchmarks/bench_update.py $(ARGS)
@@ -54,6 +60,9 @@ bench-learning: $(STAMP)  ## learning at equal budget: walkers TD3 vs SB3 TD3, f
 	$(VENV)/bin/pip install --quiet -e '.[bench]'
 	$(PY) benchmarks/bench_learning.py $(ARGS)
 
+bench-scale: $(STAMP)  ## a seed study through joblib vs a loopback Ray cluster of 1 and 2 workers; the study and a sweep with N workers on paper
+	$(PY) benchmarks/bench_scale.py $(ARGS)
+
 lint: $(STAMP)  ## ruff (style, common bugs) and lint-imports (imports point down the layers)
 	$(VENV)/bin/ruff check walkers tests $(wildcard benchmarks)
 	$(VENV)/bin/lint-imports
@@ -65,4 +74,4 @@ clean:  ## remove run outputs (mlflow.db, mlartifacts/, outputs/, multirun/, .wa
 	rm -rf mlflow.db mlruns mlartifacts outputs multirun .walkers reports .pytest_cache .ruff_cache
 	find . -name __pycache__ -type d -prune -not -path './$(VENV)/*' -exec rm -rf {} +
 
-.PHONY: help install train ab ab-all offline compare test bench bench-throughput bench-learning lint ui clean
+.PHONY: help install train ab ab-all offline compare test test-cluster stack bench bench-throughput bench-learning bench-scale lint ui clean

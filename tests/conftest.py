@@ -35,6 +35,18 @@ TINY = [
 ]
 
 
+#: The metrics the design names for every online run (DESIGN.md, "Evaluation protocol").
+DESIGN_METRICS = {
+    "eval/return_mean",
+    "eval/return_std",
+    "final/return_mean",
+    "final/return_last10",
+    "final/auc",
+    "final/steps_to_threshold",
+    "perf/sps",
+}
+
+
 def compose_cfg(overrides: list[str], config_name: str = "train"):
     """The real config of an entrypoint (``train``, ``evaluate``, ``compare``) with overrides."""
     with initialize_config_dir(config_dir=CONF_DIR):
@@ -92,15 +104,16 @@ def run_cli(
     )
 
 
-def spawn_cli(args: list[str], cwd: Path) -> subprocess.Popen:
-    """Start ``python -m walkers.train ARGS`` in the background (to signal or kill it)."""
+def spawn_cli(args: list[str], cwd: Path, merge_output: bool = False) -> subprocess.Popen:
+    """Start ``python -m walkers.train ARGS`` in the background (to signal or kill it);
+    ``merge_output``: stderr into stdout (one log to read)."""
     env = {k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"}
     return subprocess.Popen(
         [sys.executable, "-m", "walkers.train", *args],
         cwd=cwd,
         env=env,
         stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
+        stderr=subprocess.STDOUT if merge_output else subprocess.PIPE,
         text=True,
     )
 
@@ -148,4 +161,3 @@ def one_line_error(result: subprocess.CompletedProcess) -> str:
 
 def metric_steps(client: MlflowClient, run_id: str, key: str) -> list[int]:
     return [m.step for m in client.get_metric_history(run_id, key)]
-

@@ -50,7 +50,7 @@ def td3(run_id: str, **changes: str) -> Run:
     "key",
     ["seed", "tracking.uri", "tracking.run_name", "sweep.trial_number", "sweep.pruner",
      "work_dir", "torch_threads", "population", "algo.compile", "dataset_stats.steps",
-     "optimized_metric", "log_every", "resume", "env.published"],
+     "optimized_metric", "log_every", "resume", "env.published", "job_key"],
 )  # fmt: skip
 def test_keys_that_cannot_change_results_are_not_the_experiment(key):
     assert arms.is_not_the_experiment(key)

@@ -11,7 +11,7 @@ import pytest
 import torch
 from torch.distributions import Normal, TanhTransform, TransformedDistribution
 
-from tests.conftest import TINY, all_runs, compose_cfg, new_store, run_cli
+from tests.conftest import DESIGN_METRICS, TINY, all_runs, compose_cfg, new_store, run_cli
 from walkers.agents.base import Transition
 from walkers.agents.networks import EnsembleGaussianActor, tanh_log_det_jacobian
 from walkers.agents.sac import SAC
@@ -206,16 +206,7 @@ SAC_TINY = [
     "algo.batch_size=64",
     "algo.hidden_sizes=[32,32]",
 ]
-#: What the design names for every run, and what SAC logs of its update.
-DESIGN_METRICS = {
-    "eval/return_mean",
-    "eval/return_std",
-    "final/return_mean",
-    "final/return_last10",
-    "final/auc",
-    "final/steps_to_threshold",
-    "perf/sps",
-}
+#: What SAC logs of its update (beside the design's metrics).
 SAC_METRICS = {
     "loss/critic",
     "loss/actor",

@@ -103,20 +103,24 @@ def test_diverged_trial_scores_the_worst_finite_value_and_errors_fail():
     for value in (-100.0, -500.0):
         study.tell(study.ask(), value)
     diverged = study.ask()
-    assert record_outcome(study, diverged, _job_return(math.nan)) is None
+    # a trial's jobs: one per seed; a seed that diverged makes the trial's mean NaN
+    assert record_outcome(study, diverged, [_job_return(-50.0), _job_return(math.nan)]) is None
     assert study.trials[2].value == -500.0 and study.trials[2].user_attrs["diverged"]
     crashed = study.ask()
-    error = record_outcome(study, crashed, _job_return(error=RuntimeError("boom")))
+    error = record_outcome(study, crashed, [_job_return(error=RuntimeError("boom"))])
     assert isinstance(error, RuntimeError) and study.trials[3].state == TrialState.FAIL
+    two_seeds = study.ask()
+    assert record_outcome(study, two_seeds, [_job_return(-100.0), _job_return(-200.0)]) is None
+    assert study.trials[4].value == -150.0  # the mean over the seeds
 
 
 def test_a_minimizing_study_ranks_a_never_reached_threshold_worst():
     # final/steps_to_threshold is inf for a trial that never reached the threshold
     study = optuna.create_study(direction="minimize")
     study.tell(study.ask(), 3000.0)
-    assert record_outcome(study, study.ask(), _job_return(math.inf)) is None
+    assert record_outcome(study, study.ask(), [_job_return(math.inf)]) is None
     assert study.trials[1].value == math.inf and "diverged" not in study.trials[1].user_attrs
-    assert record_outcome(study, study.ask(), _job_return(math.nan)) is None  # diverged
+    assert record_outcome(study, study.ask(), [_job_return(math.nan)]) is None  # diverged
     assert study.trials[2].value == 3000.0 and study.trials[2].user_attrs["diverged"]
     assert study.best_trial.number == 0
     study.tell(study.ask(), 2000.0)

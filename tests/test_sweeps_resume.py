@@ -122,6 +122,7 @@ REFUSED = [
         ["hydra.sweeper.direction=maximize", "optimized_metric=final/steps_to_threshold", "min"],
     ),
     (["optimized_metric=loss"], ["optimized_metric='loss'", "final/steps_to_threshold (min"]),
+    (["seeds_per_trial=0"], ["seeds_per_trial=0", "an integer >= 1"]),
 ]
 
 

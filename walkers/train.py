@@ -18,6 +18,7 @@ import sys
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
 from omegaconf import DictConfig
 
 from walkers import CONF_DIR
@@ -35,6 +36,21 @@ def parallel_jobs() -> int:
     return (os.cpu_count() or 1) if n_jobs < 0 else n_jobs
 
 
+class JobFailed(RuntimeError):
+    """A job on a cluster worker failed for a reason a retry cannot fix (bad input)."""
+
+
+def fail(message: str, exit_code: int):
+    """End the job: one line and an exit code, or, in a job a cluster worker runs (Ray,
+    submitit), an exception that Hydra hands back to the launcher as the job's failure: an exit
+    there looks like a dead worker, and the cluster would run the job again."""
+    launcher = HydraConfig.get().launcher.get("_target_", "")
+    if any(remote in launcher for remote in ("hydra_ray_launcher", "hydra_submitit_launcher")):
+        raise JobFailed(message)
+    print(message, file=sys.stderr)
+    sys.exit(exit_code)
+
+
 def _raise_keyboard_interrupt(signum, frame):
     raise KeyboardInterrupt(f"signal {signum}")
 
@@ -42,19 +58,22 @@ def _raise_keyboard_interrupt(signum, frame):
 @hydra.main(config_path=str(CONF_DIR), config_name="train", execution_whitelist=["walkers.*"])
 def main(cfg: DictConfig) -> float:
     signal.signal(signal.SIGTERM, _raise_keyboard_interrupt)  # SIGTERM ends the run like Ctrl-C
+    hydra_cfg = HydraConfig.get()
+    if hydra_cfg.mode == RunMode.MULTIRUN and not cfg.job_key:
+        # the same for every attempt of this job (a cluster runs a job again if its worker dies)
+        cfg.job_key = f"{hydra_cfg.sweep.dir}#{hydra_cfg.job.num}"
     jobs = parallel_jobs()
     if cfg.torch_threads is None and jobs > 1:  # parallel jobs share the cores
         cfg.torch_threads = max(1, (os.cpu_count() or 1) // jobs)
     try:
         return train(cfg, HydraConfig.get().overrides.task)
     except (ConfigError, CheckpointError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        sys.exit(2)
+        fail(f"error: {e}", 2)
     except TrainingDiverged as e:
-        print(f"error: {e}; MLflow run marked FAILED", file=sys.stderr)
         if cfg.trial.id is not None:
+            print(f"error: {e}; MLflow run marked FAILED", file=sys.stderr)
             return math.nan  # the sweeper scores a diverged trial as the worst one so far
-        sys.exit(3)
+        fail(f"error: {e}; MLflow run marked FAILED", 3)
     except KeyboardInterrupt:
         print("interrupted: last checkpoint saved, MLflow run marked KILLED", file=sys.stderr)
         sys.exit(130)

@@ -85,7 +85,7 @@ def tanh_log_det_jacobian(u: torch.Tensor) -> torch.Tensor:
     return 2.0 * (math.log(2.0) - u - F.softplus(-2.0 * u))
 
 
-class EnsembleGaussianActor(nn.Module):
+class EnsembleGaussianActor(EnsembleActor):
     """``n`` independent squashed Gaussian policies (SAC): a = tanh(u) scaled onto the action
     bounds, u ~ N(mu_i(s), sigma_i(s)^2), with mean and log-std from one MLP per member (the
     last layer outputs both, so every layer is one batched matmul for all members).
@@ -98,15 +98,9 @@ class EnsembleGaussianActor(nn.Module):
     LOG_STD_MIN, LOG_STD_MAX = -20.0, 2.0
 
     def __init__(self, n, obs_dim, act_dim, hidden_sizes, action_low, action_high):
-        super().__init__()
-        dims = [obs_dim, *hidden_sizes, 2 * act_dim]  # the head: mean and log-std
-        self.layers = nn.ModuleList(
-            EnsembleLinear(n, a, b) for a, b in zip(dims[:-1], dims[1:], strict=True)
-        )
-        low = torch.as_tensor(action_low, dtype=torch.float32)
-        high = torch.as_tensor(action_high, dtype=torch.float32)
-        self.register_buffer("action_scale", (high - low) / 2, persistent=False)
-        self.register_buffer("action_bias", (high + low) / 2, persistent=False)
+        # the deterministic actor's layers and action bounds, with a head twice as wide: the
+        # mean and the log-std
+        super().__init__(n, obs_dim, 2 * act_dim, hidden_sizes, action_low, action_high)
 
     def distribution(
         self, obs: torch.Tensor, members: slice = slice(None)

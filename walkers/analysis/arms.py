@@ -33,6 +33,7 @@ NOT_THE_EXPERIMENT = (
     "torch_threads",  # speed only
     "device",  # for CPU runs only (see arm_config): an accelerator's run stays its own arm
     "trial.",  # Optuna plumbing (study, trial id, parent run); a pruned trial is left out anyway
+    "job_key",  # a multirun job's identity across attempts (walkers.train), one value per job
     "pruner.",  # when a trial may be stopped, not what it learns
     "pruning.",
     "sweep.",  # the same, as runs before the rename recorded it

@@ -1,9 +1,11 @@
 """The only module that talks to MLflow.
 
 A :class:`Tracker` owns one MLflow run. Metrics are buffered and written in batches (a sqlite
-write per metric would cost more than a TD3 update); :meth:`Tracker.flush` is called right after
-each checkpoint, so what MLflow holds never runs ahead of the last checkpoint and a resumed run
-re-logs nothing twice. A store that fails mid-run does not stop training: unsent metrics are
+write per metric would cost more than a TD3 update); the trainer flushes them after every
+evaluation and checkpoint, so a run's curves move in the UI within one evaluation interval.
+Each flush records how far the run has logged (tag ``walkers.logged_through``); a resumed run,
+which restarts from its last checkpoint, does not log again the steps up to that mark, so no
+step is logged twice. A store that fails mid-run does not stop training: unsent metrics are
 kept and retried at the next flush, and written to a local file if they still can't be sent.
 """
 
@@ -11,7 +13,9 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import time
+import urllib.request
 from collections.abc import Mapping
 from contextlib import contextmanager
 from pathlib import Path
@@ -24,6 +28,13 @@ from walkers.errors import CheckpointError, ConfigError
 
 log = logging.getLogger(__name__)
 
+# A tracking server that is down (restarting) must not stall training: MLflow's client would
+# retry each request with backoff for minutes. A few quick retries, then the metrics wait for
+# the next flush (Tracker.flush keeps them).
+os.environ.setdefault("MLFLOW_HTTP_REQUEST_MAX_RETRIES", "2")
+os.environ.setdefault("MLFLOW_HTTP_REQUEST_BACKOFF_FACTOR", "1")
+os.environ.setdefault("MLFLOW_HTTP_REQUEST_TIMEOUT", "30")
+
 MLFLOW_MAX_PARAMS_PER_BATCH = 100
 #: Statuses a run ends with.
 FINISHED, FAILED, KILLED = "FINISHED", "FAILED", "KILLED"
@@ -34,6 +45,8 @@ X_AXIS_TAG = "walkers.x_axis"
 ENV_STEPS, GRADIENT_STEPS = "env_steps", "gradient_steps"
 #: Tag of a run its pruner stopped early (a sweep trial; ``walkers.compare`` leaves it out).
 PRUNED_TAG = "walkers.pruned_at_step"
+#: Tag: the last step whose metrics reached MLflow (a resumed run logs only steps after it).
+LOGGED_THROUGH_TAG = "walkers.logged_through"
 
 
 def ui_url(experiment_id: str, run_id: str | None = None, host: str = "http://127.0.0.1:5000"):
@@ -80,8 +93,14 @@ def get_or_create_experiment(client: MlflowClient, name: str) -> str:
 
 
 def connect(uri: str) -> MlflowClient:
-    """A client for ``uri``; an unreachable or unusable store is a :class:`ConfigError`."""
+    """A client for ``uri``; an unreachable or unusable store is a :class:`ConfigError`.
+
+    A server is probed once, quickly, first: MLflow's own client retries a refused connection
+    with backoff for minutes before it gives up.
+    """
     try:
+        if uri.startswith(("http://", "https://")):
+            urllib.request.urlopen(f"{uri.rstrip('/')}/health", timeout=10).close()
         client = MlflowClient(tracking_uri=uri)
         _with_retries(client.search_experiments, max_results=1)
     except Exception as e:
@@ -172,11 +191,21 @@ def side_run(client: MlflowClient, experiment: str, run_name: str, tags: dict, s
 class Tracker:
     """One MLflow run: params, buffered metrics, artifacts, end status."""
 
-    def __init__(self, client: MlflowClient, run_id: str, experiment_id: str, spool_dir: Path):
+    def __init__(
+        self,
+        client: MlflowClient,
+        run_id: str,
+        experiment_id: str,
+        spool_dir: Path,
+        logged_through: int | None = None,
+    ):
         self.client, self.run_id, self.experiment_id = client, run_id, experiment_id
         self.spool_dir = Path(spool_dir)
         self._pending: list[Metric] = []
         self.status: str | None = None  # the final status, once end() has set it
+        #: steps up to here were logged by an earlier attempt of this run: not logged again
+        self.logged_through = logged_through
+        self._monitor = None  # MLflow's system metrics sampler, once started
 
     @classmethod
     def start(cls, client, experiment: str, run_name: str, tags: dict, spool_dir) -> Tracker:
@@ -185,10 +214,30 @@ class Tracker:
         return cls(client, run.info.run_id, experiment_id, spool_dir)
 
     @classmethod
-    def reopen(cls, client, run_id: str, spool_dir) -> Tracker:
+    def reopen(cls, client, run_id: str, spool_dir, resumed_training: bool = False) -> Tracker:
+        """The run ``run_id``, RUNNING again. ``resumed_training``: a training run continued
+        from its last checkpoint, which logs nothing at or before its logged-through mark."""
         run = client.get_run(run_id)
         _with_retries(client.update_run, run_id, status="RUNNING")
-        return cls(client, run_id, run.info.experiment_id, spool_dir)
+        mark = run.data.tags.get(LOGGED_THROUGH_TAG) if resumed_training else None
+        return cls(client, run_id, run.info.experiment_id, spool_dir, mark and int(mark))
+
+    def start_system_metrics(self, every_s: float) -> None:
+        """Sample CPU, memory, disk, network (and GPU where present) into the run's "System
+        metrics" tab every ``every_s`` seconds until :meth:`end` (MLflow's own monitor)."""
+        from mlflow.system_metrics.system_metrics_monitor import SystemMetricsMonitor
+
+        try:
+            self._monitor = SystemMetricsMonitor(
+                self.run_id,
+                sampling_interval=every_s,
+                resume_logging=self.logged_through is not None,
+                tracking_uri=self.client.tracking_uri,
+            )
+            self._monitor.start()
+        except Exception as e:  # a nice-to-have: never a reason to stop training
+            log.warning("no system metrics for run %s: %s", self.run_id, e)
+            self._monitor = None
 
     @classmethod
     def attach(cls, client, run_id: str, spool_dir) -> Tracker:
@@ -197,6 +246,10 @@ class Tracker:
 
     @property
     def url(self) -> str:
+        """The run in the MLflow UI: on the tracking server itself, else a local `make ui`."""
+        server = self.client.tracking_uri
+        if server.startswith(("http://", "https://")):
+            return ui_url(self.experiment_id, self.run_id, host=server.rstrip("/"))
         return ui_url(self.experiment_id, self.run_id)
 
     def log_params(self, params: Mapping[str, str]) -> None:
@@ -212,11 +265,16 @@ class Tracker:
 
     def log_metrics(self, metrics: Mapping[str, float], step: int) -> None:
         """Queue metrics at env step ``step``; they are written at the next :meth:`flush`."""
+        if self.logged_through is not None and step <= self.logged_through:
+            return  # an earlier attempt of this run logged this step already
         now = int(time.time() * 1000)
         self._pending.extend(Metric(k, float(v), now, int(step)) for k, v in metrics.items())
 
     def flush(self) -> bool:
         """Send queued metrics; on failure keep them for the next try. True if all were sent."""
+        if not self._pending:
+            return True
+        through = max(m.step for m in self._pending)
         while self._pending:
             chunk = self._pending[:1000]
             try:
@@ -227,6 +285,10 @@ class Tracker:
                 )
                 return False
             del self._pending[: len(chunk)]
+        try:
+            self.set_tags({LOGGED_THROUGH_TAG: through})
+        except Exception as e:  # the metrics went through: the mark is retried at the next flush
+            log.warning("could not record %s=%d: %s", LOGGED_THROUGH_TAG, through, e)
         return True
 
     def log_artifact(self, path, artifact_path: str | None = None) -> bool:
@@ -243,6 +305,12 @@ class Tracker:
 
     def end(self, status: str) -> None:
         """Flush and set the final status; metrics MLflow never took go to a local jsonl file."""
+        if self._monitor is not None:
+            try:
+                self._monitor.finish()
+            except Exception as e:
+                log.warning("system metrics monitor of run %s: %s", self.run_id, e)
+            self._monitor = None
         if not self.flush():
             spool = self.spool_dir / "unlogged_metrics.jsonl"
             spool.parent.mkdir(parents=True, exist_ok=True)

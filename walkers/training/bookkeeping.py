@@ -10,6 +10,7 @@ counters, metric logging, evaluations (``eval/*``, ``best.pt``), videos, checkpo
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 import time
 from collections.abc import Callable
@@ -28,6 +29,8 @@ from walkers.training import checkpoints
 from walkers.training.evaluation import Evaluation, greedy_evaluation
 from walkers.training.rollout import record_episodes
 from walkers.training.video import write_gif
+
+log = logging.getLogger("walkers")
 
 #: Where a run keeps its resume checkpoint on the machine that trains it: ``last.pt`` with the
 #: replay buffer (exactly what a resume on this machine needs), beside ``checkpoints/``, whose
@@ -121,6 +124,16 @@ class RunBook:
         self.last_checkpoint_step = self.progress.step
         torch.set_rng_state(state["torch_rng"])
         self._env_rng = state.get("env_rng")
+        mark = self.tracker.logged_through
+        if mark is not None and mark > self.progress.step:
+            log.warning(
+                "run %s logged metrics up to step %d before it stopped; it resumes from its "
+                "checkpoint at step %d and logs from step %d on (no step is logged twice)",
+                self.tracker.run_id,
+                mark,
+                self.progress.step,
+                mark + 1,
+            )
         if notes := self.agent.resume_notes():  # e.g. a replay buffer that had to be refilled
             self.tracker.set_tags(notes)
 
@@ -153,7 +166,6 @@ class RunBook:
         return path
 
     def checkpoint_and_flush(self) -> None:
-        # Metrics reach MLflow only up to a checkpoint: a resumed run never logs a step twice.
         self.save_checkpoint("last.pt")
         self.last_checkpoint_step = self.progress.step
         self.tracker.flush()
@@ -195,6 +207,7 @@ class RunBook:
             self._check_divergence(scalars)
         if p.step % s.eval_every == 0 or p.step == s.total_steps:
             mean = self.evaluate()
+            self.tracker.flush()  # the curves move in the UI at every evaluation
             if (
                 self.on_evaluation is not None
                 and p.step < s.total_steps  # a finished run is never "stopped early"

@@ -65,6 +65,8 @@ def load_run(client, cfg: DictConfig, overrides, run_id: str | None = None):
     if "total_steps" in stored.get("algo", {}):  # a schedule over the budget (ppo's annealing)
         stored.algo.total_steps = stored.total_steps  # follows a new one
     stored.tracking = cfg.tracking
+    # a sweep job's trial and key are the current attempt's (a retried trial has a new number)
+    stored.trial, stored.job_key = cfg.trial, cfg.get("job_key")
     stored.resume = run_id
     return stored, state
 

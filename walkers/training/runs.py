@@ -6,13 +6,24 @@ way it ends.
 
 from __future__ import annotations
 
+import logging
+import socket
 import subprocess
+import sys
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
 from walkers import PROJECT_ROOT, tracking
+from walkers.training.bookkeeping import RESUME_DIR
 from walkers.training.resume import run_dir
+
+log = logging.getLogger("walkers")
+
+#: Tag: what identifies a multirun job across attempts (``job_key``, set by walkers.train).
+JOB_KEY_TAG = "walkers.job_key"
+#: Tag: the machine (and Ray node) that trains the run; a resumed run: the latest one.
+WORKER_TAG = "walkers.worker"
 
 
 def open_run(client, cfg: DictConfig, x_axis: str, data=None, extra_tags: dict | None = None):
@@ -23,28 +34,30 @@ def open_run(client, cfg: DictConfig, x_axis: str, data=None, extra_tags: dict |
     """
     spool = Path(cfg.work_dir) / "spool"
     if cfg.resume:
-        tracker = tracking.Tracker.reopen(client, cfg.resume, spool)
-        if extra_tags:
-            tracker.set_tags(extra_tags)
+        tracker = tracking.Tracker.reopen(client, cfg.resume, spool, resumed_training=True)
+        tracker.set_tags((extra_tags or {}) | trial_tags(cfg) | {WORKER_TAG: worker_name()})
+        _start_system_metrics(tracker, cfg)
         return tracker
     algo, env_id, commit = cfg.algo.name, cfg.env.id, git_commit()
     tags = {
         "algo": algo,
         "env": env_id,
         "seed": str(cfg.seed),
+        WORKER_TAG: worker_name(),
         "git_commit": commit,
         "mlflow.source.git.commit": commit,
         tracking.X_AXIS_TAG: x_axis,
     }
     if data is not None:
         tags["dataset"] = data.id
-    tags |= extra_tags or {}
+    if cfg.job_key:
+        tags[JOB_KEY_TAG] = cfg.job_key
+    tags |= (extra_tags or {}) | trial_tags(cfg)
     run_name = cfg.tracking.run_name or f"{algo}-{env_id}-s{cfg.seed}"
     if cfg.trial.number is not None:  # a trial of an Optuna study
-        tags |= {"walkers.study": cfg.trial.study, "walkers.trial": str(cfg.trial.number)}
         run_name = f"{cfg.trial.study}-trial{cfg.trial.number}"
-        if cfg.trial.parent_run_id:
-            tags["mlflow.parentRunId"] = cfg.trial.parent_run_id
+        if cfg.seeds_per_trial > 1:
+            run_name += f"-s{cfg.seed}"
     tracker = tracking.Tracker.start(
         client, cfg.tracking.experiment, run_name=run_name, tags=tags, spool_dir=spool
     )
@@ -55,7 +68,83 @@ def open_run(client, cfg: DictConfig, x_axis: str, data=None, extra_tags: dict |
     except BaseException:
         tracker.end(tracking.FAILED)
         raise
+    _start_system_metrics(tracker, cfg)
     return tracker
+
+
+def worker_name() -> str:
+    """Where the run trains: the host, and the Ray node when a Ray cluster runs the job."""
+    host = socket.gethostname()
+    if "ray" in sys.modules:  # only a Ray launcher's job has it imported
+        import ray
+
+        if ray.is_initialized():
+            return f"{host}/ray-node-{ray.get_runtime_context().get_node_id()[:12]}"
+    return host
+
+
+def trial_tags(cfg: DictConfig) -> dict[str, str]:
+    """A sweep job's place in its study: the study, the trial, the MLflow run it nests under
+    (set again on resume: a retried trial of a study continues the run of the trial it
+    retries)."""
+    if cfg.trial.number is None:
+        return {}
+    tags = {"walkers.study": cfg.trial.study, "walkers.trial": str(cfg.trial.number)}
+    if cfg.trial.parent_run_id:
+        tags["mlflow.parentRunId"] = cfg.trial.parent_run_id
+    return tags
+
+
+def _start_system_metrics(tracker: tracking.Tracker, cfg: DictConfig) -> None:
+    if cfg.tracking.get("system_metrics"):
+        tracker.start_system_metrics(cfg.tracking.system_metrics_every)
+
+
+def continue_earlier_attempt(client, cfg: DictConfig) -> DictConfig:
+    """A job run again continues the run of its earlier attempt instead of starting a second.
+
+    Ray runs a job again when its worker died (kill -9, ``ray stop`` on the node); a study runs
+    a trial again when its sweeper died (``optuna.max_retry``). The earlier attempt's run, left
+    RUNNING (or KILLED by SIGTERM), is found by the job's key (``job_key``) and resumed from its
+    last checkpoint, fetched from MLflow on whatever worker this is. Without a checkpoint there
+    is nothing to continue: it is marked FAILED and a new run starts.
+    """
+    if not cfg.job_key or cfg.population > 1:
+        return cfg
+    experiment = client.get_experiment_by_name(cfg.tracking.experiment)
+    if experiment is None:
+        return cfg
+    query = f"tags.`{JOB_KEY_TAG}` = '{cfg.job_key}'"
+    earlier = [
+        r
+        for r in tracking.search_runs(client, experiment.experiment_id, query)
+        if r.info.status in ("RUNNING", "KILLED")
+    ]
+    if not earlier:
+        return cfg
+    run_id = earlier[0].info.run_id
+    uploaded = [a.path for a in client.list_artifacts(run_id, "checkpoints")]
+    local = run_dir(cfg.work_dir, run_id) / RESUME_DIR / "last.pt"
+    if "checkpoints/last.pt" not in uploaded and not local.is_file():
+        log.warning(
+            "job %s ran before as run %s, which ended without a checkpoint: marked FAILED; "
+            "starting a new run",
+            cfg.job_key,
+            run_id,
+        )
+        tracker = tracking.Tracker.attach(client, run_id, Path(cfg.work_dir) / "spool")
+        tracker.set_tags({"walkers.superseded": "no checkpoint: the job ran again as a new run"})
+        tracker.end(tracking.FAILED)
+        return cfg
+    log.warning(
+        "job %s ran before as run %s (%s): continuing it from its last checkpoint",
+        cfg.job_key,
+        run_id,
+        earlier[0].info.status,
+    )
+    cfg = cfg.copy()
+    cfg.resume = run_id
+    return cfg
 
 
 def prepare_run_dir(cfg: DictConfig, tracker: tracking.Tracker) -> Path:

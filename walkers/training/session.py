@@ -28,7 +28,7 @@ from walkers.training.bookkeeping import (
 from walkers.training.envs import env_spaces, make_env
 from walkers.training.evaluation import per_target_return, with_normalized_score
 from walkers.training.loops import train_offline, train_online, train_population
-from walkers.training.runs import open_run, prepare_run_dir
+from walkers.training.runs import continue_earlier_attempt, open_run, prepare_run_dir
 from walkers.training.validate import is_offline, validate
 from walkers.tuning.trial import TrialReporter
 
@@ -45,6 +45,8 @@ def train(cfg: DictConfig, overrides: list[str] | tuple = ()) -> float:
         validate(cfg)  # before anything is created
         warn_short_warmup(cfg)
     client = tracking.connect(cfg.tracking.uri)
+    if not cfg.resume:
+        cfg = continue_earlier_attempt(client, cfg)  # a multirun job run again (its worker died)
     state, members = None, None
     if OmegaConf.is_list(cfg.resume):  # several runs, continued together as one population
         cfg, members = resume.load_population(client, cfg, overrides)
@@ -90,7 +92,9 @@ def _train_single(cfg: DictConfig, client, state: dict | None) -> dict[str, floa
             )
             book = _book(cfg, trackers[0], agent, env, eval_env, axis, video_env, **offline)
             if cfg.trial.id is not None:  # a job of an Optuna study
-                book.on_evaluation = TrialReporter(cfg.trial, cfg.get("pruner"))
+                book.on_evaluation = TrialReporter(
+                    cfg.trial, cfg.get("pruner"), cfg.seed, cfg.seeds_per_trial
+                )
             if state is not None:
                 book.restore(state)
                 log.info("resuming run %s at step %d", trackers[0].run_id, book.progress.step)

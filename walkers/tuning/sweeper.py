@@ -12,13 +12,26 @@ overrides) with what RL tuning needs and that plugin lacks:
   to it and stops when the job's pruner says so (:mod:`walkers.tuning.trial`); the trial is
   told PRUNED.
 - Resume: ``n_trials`` is the size of the study. Running the same command again continues an
-  interrupted study; trials an interrupted sweep left RUNNING are marked FAIL. A rerun with
-  ``n_trials`` at or below the trials already done runs nothing and reports the study again.
+  interrupted study. A rerun with ``n_trials`` at or below the trials already done runs nothing
+  and reports the study again.
+- Several sweepers, one study (Optuna's distributed optimization; :mod:`walkers.tuning.studies`):
+  any number of sweeper processes may run the same command on a shared storage (``optuna=
+  postgres``); between them they run exactly ``n_trials`` trials. Each records heartbeats for
+  its trials: a trial whose sweeper died is failed after ``optuna.grace_period`` and retried
+  (``optuna.max_retry``) by a sweeper still running, or by the next one started. A sweeper
+  that is interrupted or whose launcher fails tells its own trials FAIL on the way out.
+- Seeds: ``seeds_per_trial=N`` runs every trial on seeds ``seed .. seed+N-1``, N jobs launched
+  together; the trial scores the mean of their values and is pruned on the mean of their
+  evaluations (:mod:`walkers.tuning.trial`). The trial gets an MLflow run of its own, nested
+  under the study's, with its seeds' runs nested under it.
+- A job run again (a cluster re-runs a job whose worker died) continues its earlier run:
+  each job has a key (study / original trial number / seed) that ``walkers.train`` looks up.
 - Divergence: a trial whose score is NaN (or infinitely good) scores the worst finite value so
   far; an infinitely bad score (a threshold never reached) is kept and ranks below all others.
-- MLflow: one parent run per study (tag ``walkers.kind=study``), every trial's run nested under
-  it and tagged with the study and trial number. After every sweep the parent run gets the best
-  trial as values that may change when a resumed study finds a better one: tags
+- MLflow: one parent run per study (tag ``walkers.kind=study``), every trial's run (a seed's
+  run with ``seeds_per_trial=1``) nested under it and tagged with the study and trial number.
+  After every sweep the parent run gets the best trial as values that may change when a
+  resumed study finds a better one: tags
   ``best.<param>``, metrics ``best_value`` / ``best_trial`` (step: trials done), and the
   artifact ``optimization_results.yaml`` (also written to the sweep dir).
 """
@@ -28,7 +41,9 @@ from __future__ import annotations
 import logging
 import math
 import sys
+import time
 from collections.abc import Sequence
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -47,6 +62,14 @@ from optuna.trial import TrialState
 from walkers import tracking
 from walkers.errors import ConfigError
 from walkers.metrics import MAXIMIZE, MINIMIZE, metric_direction
+from walkers.tuning.studies import (
+    Heartbeats,
+    counted_trials,
+    open_storage,
+    original_number,
+    running,
+    study_lock,
+)
 from walkers.tuning.trial import PRUNED_AT
 
 log = logging.getLogger("walkers")
@@ -135,16 +158,25 @@ def infinitely_bad(study: optuna.Study) -> float:
     return -math.inf if study.direction == StudyDirection.MAXIMIZE else math.inf
 
 
-def record_outcome(study: optuna.Study, trial: optuna.Trial, result: JobReturn) -> Exception | None:
-    """Tell the study how a trial's job ended; returns the job's exception if it failed.
+def trial_value(results: Sequence[JobReturn]) -> float:
+    """A trial's value: its job's, or the mean over its seeds' jobs (NaN if any diverged).
+    Re-raises the first exception a job raised."""
+    return float(sum(float(r.return_value) for r in results) / len(results))
 
-    Pruned (the job set ``pruned_at_step``) -> PRUNED; NaN or an infinitely *good* score -> the
+
+def record_outcome(
+    study: optuna.Study, trial: optuna.Trial, results: Sequence[JobReturn]
+) -> Exception | None:
+    """Tell the study how a trial's jobs (one per seed) ended; returns a job's exception if one
+    failed.
+
+    Pruned (a job set ``pruned_at_step``) -> PRUNED; NaN or an infinitely *good* score -> the
     worst finite score so far (a diverged configuration is bad, not an error); an infinitely
     *bad* score (``final/steps_to_threshold`` of a trial that never reached the threshold) is
     told as it is: Optuna ranks it below every finite score; an exception -> FAIL.
     """
     try:
-        value = float(result.return_value)  # re-raises what the job raised
+        value = trial_value(results)  # re-raises what a job raised
     except Exception as e:
         study.tell(trial, state=TrialState.FAIL)
         log.warning("trial %d failed: %s", trial.number, e)
@@ -168,8 +200,8 @@ def record_outcome(study: optuna.Study, trial: optuna.Trial, result: JobReturn) 
 
 
 def trials_done(study: optuna.Study) -> int:
-    """Trials that ended (complete, pruned or failed): what ``n_trials`` counts."""
-    return len(study.get_trials(deepcopy=False, states=DONE))
+    """Trials that ended (complete, pruned, or failed and not retried)."""
+    return len([t for t in counted_trials(study.get_trials(deepcopy=False)) if t.state in DONE])
 
 
 class PruningOptunaSweeper(OptunaSweeperImpl):
@@ -209,9 +241,19 @@ class PruningOptunaSweeper(OptunaSweeperImpl):
         """Create the study or load it to resume (refused if it was scored by another metric)."""
         metric = self.config.optimized_metric
         self.direction = sweep_direction(metric, self.direction)
+        if self.storage is None and self.config.hydra.runtime.choices.get("optuna") == "postgres":
+            raise ConfigError(
+                "optuna=postgres needs its database: export WALKERS_OPTUNA_STORAGE="
+                "'postgresql+psycopg://<user>:<password>@<host>/<database>' (`make stack` "
+                "prints one) or pass optuna.storage=..."
+            )
+        settings = self.config.optuna
+        self.rdb = self.storage and open_storage(
+            self.storage, settings.heartbeat_interval, settings.grace_period, settings.max_retry
+        )
         study = optuna.create_study(
             study_name=self.study_name,
-            storage=self.storage,
+            storage=self.rdb or None,
             sampler=self.sampler,
             directions=self._get_directions(),
             load_if_exists=True,
@@ -221,11 +263,28 @@ class PruningOptunaSweeper(OptunaSweeperImpl):
             # A resumed study: a seeded sampler restarted from its seed would propose the same
             # points again, so it continues from seed + the number of trials already asked.
             study.sampler = self.sampler = self._make_sampler(seed_offset=asked)
-        for stale in study.get_trials(deepcopy=False, states=(TrialState.RUNNING,)):
-            log.warning("trial %d was left running by an interrupted sweep: FAIL", stale.number)
-            study.tell(stale.number, state=TrialState.FAIL)
+        if not settings.heartbeat_interval:  # no heartbeats: no other sweeper can be told apart
+            for stale in study.get_trials(deepcopy=False, states=(TrialState.RUNNING,)):
+                log.warning("trial %d was left running by an interrupted sweep: FAIL", stale.number)
+                study.tell(stale.number, state=TrialState.FAIL)
         self._log_size(study, metric)
         return study
+
+    def _claim(self, study: optuna.Study, beats: Heartbeats) -> list[optuna.Trial]:
+        """Up to ``n_jobs`` trials for this sweeper while the study (all its sweepers together)
+        has started fewer than ``n_trials``: waiting ones first (retries, enqueued trials)."""
+        with study_lock(self.rdb, study.study_name) if self.rdb else _unlocked():
+            optuna.storages.fail_stale_trials(study)  # trials of a dead sweeper: FAIL + retry
+            started = [
+                t
+                for t in counted_trials(study.get_trials(deepcopy=False))
+                if t.state != TrialState.WAITING
+            ]
+            room = self.n_trials - len(started)
+            claimed = [study.ask() for _ in range(max(0, min(self.n_jobs, room)))]
+        for trial in claimed:
+            beats.add(trial._trial_id)
+        return claimed
 
     def _log_size(self, study: optuna.Study, metric: str) -> None:
         done, name = trials_done(study), study.study_name
@@ -249,13 +308,19 @@ class PruningOptunaSweeper(OptunaSweeperImpl):
                 metric,
             )
 
-    def _job_overrides(self, study: optuna.Study, trial: optuna.Trial, parent_id: str | None):
+    def _job_overrides(
+        self, study: optuna.Study, trial: optuna.Trial, parent_id: str | None, seed: int
+    ) -> list[str]:
+        frozen = study._storage.get_trial(trial._trial_id)
         overrides = [
             f"trial.study='{study.study_name}'",
             f"trial.storage='{self.storage}'",
             f"trial.id={trial._trial_id}",
             f"trial.number={trial.number}",
+            f"job_key='{study.study_name}/trial{original_number(frozen)}/seed{seed}'",
         ]
+        if self.config.seeds_per_trial > 1:
+            overrides.append(f"seed={seed}")
         if parent_id:
             overrides.append(f"trial.parent_run_id={parent_id}")
         return overrides
@@ -268,35 +333,67 @@ class PruningOptunaSweeper(OptunaSweeperImpl):
         )
         for name in fixed:
             space.pop(name, None)
-        try:
+        try:  # both stores answer before anything is created in either
+            seeds = self.config.seeds_per_trial
+            if not isinstance(seeds, int) or isinstance(seeds, bool) or seeds < 1:
+                raise ConfigError(f"seeds_per_trial={seeds!r} is not allowed: an integer >= 1")
+            client = tracking.connect(self.config.tracking.uri)
             study = self._open_study()
         except ConfigError as e:  # raised inside Hydra's multirun: one line, not a traceback
             print(f"error: {e}", file=sys.stderr)
             sys.exit(2)
-        parent = open_parent_run(self.config, study, self.storage)
-        with tracking.ending([parent] if parent is not None else []):
-            while (todo := self.n_trials - trials_done(study)) > 0:
-                batch = min(todo, self.n_jobs)
-                self._run_batch(study, batch, space, fixed, fixed_overrides, parent)
+        with study_lock(self.rdb, study.study_name) if self.rdb else _unlocked():
+            parent = open_parent_run(client, self.config, study, self.storage)  # one for all
+        settings = self.config.optuna
+        poll = min(5, settings.heartbeat_interval or 5)
+        with (
+            tracking.ending([parent] if parent is not None else []),
+            Heartbeats(self.rdb, settings.heartbeat_interval if self.rdb else None) as beats,
+        ):
+            while True:
+                if trials := self._claim(study, beats):
+                    self._run_batch(study, trials, space, fixed, fixed_overrides, parent, beats)
+                elif others := running(study):  # another sweeper's: wait, retry if it died
+                    log.info("waiting for %d trials of other sweepers on the study", len(others))
+                    time.sleep(poll)
+                else:
+                    break
             self._report(study, fixed, parent)
 
-    def _run_batch(self, study, size, space, fixed, fixed_overrides, parent) -> None:
-        """Ask ``size`` trials, launch them as jobs, tell the study how each ended.
+    def _run_batch(self, study, trials, space, fixed, fixed_overrides, parent, beats) -> None:
+        """Launch the jobs of ``trials`` (one per seed), tell the study how each trial ended.
 
-        Raises the first failure when more than ``max_failure_rate`` of the batch failed.
+        Raises the first failure when more than ``max_failure_rate`` of the batch failed. On
+        the way out for any other reason (Ctrl-C, a launcher that fails) the trials are told
+        FAIL and their MLflow runs ended, so nothing is left RUNNING.
         """
-        trials = [study.ask() for _ in range(size)]
-        overrides = [
-            (*job, *self._job_overrides(study, trial, parent and parent.run_id))
-            for job, trial in zip(
-                self._configure_trials(trials, space, fixed, fixed_overrides), trials, strict=True
-            )
-        ]
-        returns = self.launcher.launch(overrides, initial_job_idx=self.job_idx)
-        self.job_idx += len(returns)
-        failures = [record_outcome(study, t, r) for t, r in zip(trials, returns, strict=True)]
+        seeds = [self.config.seed + i for i in range(self.config.seeds_per_trial)]
+        trial_runs = [open_trial_run(parent, study, t) if len(seeds) > 1 else None for t in trials]
+        jobs = []
+        with tracking.ending([r for r in trial_runs if r is not None]):
+            try:
+                params = self._configure_trials(trials, space, fixed, fixed_overrides)
+                for trial, job, trial_run in zip(trials, params, trial_runs, strict=True):
+                    nest_under = (trial_run or parent) and (trial_run or parent).run_id
+                    for seed in seeds:
+                        jobs.append((*job, *self._job_overrides(study, trial, nest_under, seed)))
+                returns = self.launcher.launch(jobs, initial_job_idx=self.job_idx)
+            except BaseException:
+                for trial in trials:
+                    log.warning("trial %d did not finish: FAIL", trial.number)
+                    study.tell(trial, state=TrialState.FAIL)
+                    beats.remove(trial._trial_id)
+                raise
+            self.job_idx += len(returns)
+            failures = []
+            for i, (trial, trial_run) in enumerate(zip(trials, trial_runs, strict=True)):
+                results = returns[i * len(seeds) : (i + 1) * len(seeds)]
+                failures.append(record_outcome(study, trial, results))
+                beats.remove(trial._trial_id)
+                if trial_run is not None:
+                    log_trial_outcome(trial_run, study, trial, self.config.optimized_metric)
         failures = [e for e in failures if e is not None]
-        if len(failures) / len(returns) > self.max_failure_rate:
+        if len(failures) / len(trials) > self.max_failure_rate:
             raise failures[0]
 
     def _report(self, study: optuna.Study, fixed: dict, parent: tracking.Tracker | None) -> None:
@@ -341,18 +438,43 @@ def log_best(
         {"best_value": best.value, "best_trial": best.number}, step=trials_done(study)
     )
     parent.log_artifact(results)
-    log.info("MLflow parent run: `make ui`, then %s", parent.url)
+    log.info("MLflow parent run: %s", parent.url)
+
+
+def open_trial_run(
+    parent: tracking.Tracker | None, study: optuna.Study, trial: optuna.Trial
+) -> tracking.Tracker | None:
+    """A trial's own MLflow run (``seeds_per_trial`` > 1): its parameters and outcome, nested
+    under the study's run, its seeds' runs nested under it."""
+    if parent is None:
+        return None
+    tags = {
+        tracking.KIND_TAG: "trial",
+        STUDY_TAG: study.study_name,
+        "walkers.trial": str(trial.number),
+        "mlflow.parentRunId": parent.run_id,
+    }
+    name = f"{study.study_name}-trial{trial.number}"
+    experiment = parent.client.get_experiment(parent.experiment_id).name
+    run = tracking.Tracker.start(parent.client, experiment, name, tags, parent.spool_dir)
+    return run
+
+
+def log_trial_outcome(
+    run: tracking.Tracker, study: optuna.Study, trial: optuna.Trial, metric: str
+) -> None:
+    """The trial's sampled parameters, state and value (the mean over its seeds) on its run."""
+    (frozen,) = [t for t in study.get_trials(deepcopy=False) if t.number == trial.number]
+    run.log_params({k: str(v) for k, v in frozen.params.items()})
+    run.set_tags({"walkers.trial_state": frozen.state.name})
+    if frozen.value is not None:
+        run.log_metrics({metric: frozen.value}, step=0)
 
 
 def open_parent_run(
-    config: DictConfig, study: optuna.Study, storage: str | None
-) -> tracking.Tracker | None:
+    client, config: DictConfig, study: optuna.Study, storage: str | None
+) -> tracking.Tracker:
     """The study's MLflow parent run: reopened when a study is resumed, else created."""
-    try:
-        client = tracking.connect(config.tracking.uri)
-    except Exception as e:  # the jobs will report a bad store as a one-line error
-        log.warning("no MLflow parent run for the study: %s", e)
-        return None
     experiment_id = tracking.get_or_create_experiment(client, config.tracking.experiment)
     spool = Path(config.work_dir) / "spool"
     tags = {
@@ -369,3 +491,8 @@ def open_parent_run(
         return parent
     run_name = f"study-{study.study_name}"
     return tracking.Tracker.start(client, config.tracking.experiment, run_name, tags, spool)
+
+
+@contextmanager
+def _unlocked():
+    yield

@@ -42,20 +42,35 @@ def make_pruner(pruner_cfg: DictConfig | None, maximize: bool = True) -> optuna.
 
 
 class TrialReporter:
-    """``reporter(step, eval_return) -> True`` when the trial should stop (it was pruned)."""
+    """``reporter(step, eval_return) -> True`` when the trial should stop (it was pruned).
 
-    def __init__(self, trial_cfg: DictConfig, pruner_cfg: DictConfig | None):
+    A trial on several seeds (``seeds_per_trial``) runs one job per seed, possibly on different
+    machines. Each job records its evaluation as a trial user attribute
+    (``walkers.eval.<step>.<seed>``); the job that completes a step's set reports their mean to
+    the pruner, and a pruning verdict (``pruned_at_step``) stops every seed's job at its next
+    evaluation. No job waits for another.
+    """
+
+    def __init__(
+        self, trial_cfg: DictConfig, pruner_cfg: DictConfig | None, seed: int = 0, seeds: int = 1
+    ):
         study = optuna.load_study(study_name=trial_cfg.study, storage=trial_cfg.storage)
         maximize = study.direction == StudyDirection.MAXIMIZE
         study.pruner = make_pruner(pruner_cfg, maximize)
         #: +1, or -1 in a minimizing study: the sign of the eval return as the pruner sees it
         self.sign = 1.0 if maximize else -1.0
         self.trial = optuna.trial.Trial(study, trial_cfg.id)
+        self.seed, self.seeds = seed, seeds
         self.pruned_at: int | None = None
 
     def __call__(self, step: int, value: float) -> bool:
+        if self.seeds > 1:
+            return self._seed_evaluation(step, value)
         if not math.isfinite(value):  # a diverged policy: nothing to compare; let it run out
             return False
+        return self._report(step, value)
+
+    def _report(self, step: int, value: float) -> bool:
         self.trial.report(self.sign * value, step)
         if self.trial.should_prune():
             self.trial.set_user_attr(PRUNED_AT, step)
@@ -65,3 +80,17 @@ class TrialReporter:
             )
             return True
         return False
+
+    def _seed_evaluation(self, step: int, value: float) -> bool:
+        self.trial.set_user_attr(f"walkers.eval.{step}.{self.seed}", value)
+        attrs = self.trial.study._storage.get_trial(self.trial._trial_id).user_attrs
+        if PRUNED_AT in attrs:  # another seed's job completed a set and the pruner said stop
+            self.pruned_at = step
+            log.info("trial %d pruned (at step %d): seed %d stops", self.trial.number,
+                     attrs[PRUNED_AT], self.seed)  # fmt: skip
+            return True
+        values = [v for k, v in attrs.items() if k.startswith(f"walkers.eval.{step}.")]
+        if len(values) < self.seeds:
+            return False  # the other seeds have not evaluated this step yet
+        mean = sum(values) / len(values)
+        return math.isfinite(mean) and self._report(step, mean)

@@ -1,0 +1,133 @@
+"""A study's storage shared by several sweeper processes and a cluster's workers.
+
+- :func:`open_storage`: Optuna's RDB storage (sqlite or PostgreSQL) with heartbeats: every
+  sweeper records a heartbeat for each trial it runs (:class:`Heartbeats`); a trial whose sweeper
+  died stops beating, and after ``grace_period`` the next sweeper on the study fails it and
+  retries it once more (Optuna's ``RetryHeartbeatStaleTrialCallback``).
+- :func:`study_lock`: "count the trials, then ask for more" as one step across processes, so
+  that sweepers running one study together stop at exactly ``n_trials`` (Optuna's own
+  ``MaxTrialsCallback`` races there). A PostgreSQL advisory lock; a file lock beside a sqlite file.
+- :func:`counted_trials`: what ``n_trials`` counts: every trial but a failed one that was retried.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import hashlib
+import threading
+from contextlib import contextmanager
+from pathlib import Path
+
+import optuna
+from optuna.storages import RDBStorage, RetryHeartbeatStaleTrialCallback
+from optuna.trial import FrozenTrial, TrialState
+
+from walkers.errors import ConfigError
+
+
+def open_storage(
+    url: str, heartbeat_interval: int | None, grace_period: int | None, max_retry: int | None
+) -> RDBStorage:
+    """The RDB storage at ``url``; a bad URL, an unreachable server or a refused login is a
+    :class:`ConfigError` naming it (nothing is created)."""
+    retry = RetryHeartbeatStaleTrialCallback(max_retry=max_retry) if heartbeat_interval else None
+    try:
+        return RDBStorage(
+            url,
+            heartbeat_interval=heartbeat_interval or None,
+            grace_period=grace_period if heartbeat_interval else None,
+            heartbeat_stale_trial_callback=retry,
+        )
+    except Exception as e:
+        reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise ConfigError(
+            f"hydra.sweeper.storage={url!r} cannot be used ({type(e).__name__}: {reason}); "
+            "give an Optuna RDB URL that works: sqlite:///<file>.db or "
+            "postgresql+psycopg://<user>:<password>@<host>/<database> (optuna=postgres reads "
+            "WALKERS_OPTUNA_STORAGE)"
+        ) from None
+
+
+def counted_trials(trials: list[FrozenTrial]) -> list[FrozenTrial]:
+    """The trials ``n_trials`` counts: all of them but the failed ones that were retried (their
+    retry, a new trial with the same parameters, counts instead)."""
+    retried = {n for t in trials for n in RetryHeartbeatStaleTrialCallback.retry_history(t)}
+    return [t for t in trials if t.number not in retried]
+
+
+def original_number(trial: FrozenTrial) -> int:
+    """The number of the trial a retry repeats (its own number if it is not a retry)."""
+    original = RetryHeartbeatStaleTrialCallback.retried_trial_number(trial)
+    return trial.number if original is None else original
+
+
+@contextmanager
+def study_lock(storage: RDBStorage, study_name: str):
+    """Hold the study against other sweeper processes (PostgreSQL advisory lock, or an exclusive
+    file lock for a sqlite file); other databases run unlocked."""
+    url = storage.engine.url
+    if url.get_backend_name() == "postgresql":
+        key = int.from_bytes(hashlib.sha256(study_name.encode()).digest()[:8], "big", signed=True)
+        with storage.engine.connect() as connection:
+            connection.exec_driver_sql(f"SELECT pg_advisory_lock({key})")
+            try:
+                yield
+            finally:
+                connection.exec_driver_sql(f"SELECT pg_advisory_unlock({key})")
+    elif url.get_backend_name() == "sqlite" and url.database not in (None, "", ":memory:"):
+        with open(Path(url.database).with_suffix(".lock"), "a") as f:
+            fcntl.flock(f, fcntl.LOCK_EX)
+            try:
+                yield
+            finally:
+                fcntl.flock(f, fcntl.LOCK_UN)
+    else:
+        yield
+
+
+class Heartbeats:
+    """A daemon thread recording a heartbeat every ``interval`` seconds for each trial this
+    sweeper runs (:meth:`add` when asked, :meth:`remove` when told)."""
+
+    def __init__(self, storage: RDBStorage, interval: int | None):
+        self.storage, self.interval = storage, interval
+        self._trials: set[int] = set()
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._beat, name="optuna-heartbeats", daemon=True)
+
+    def __enter__(self) -> Heartbeats:
+        if self.interval:
+            self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join()
+
+    def add(self, trial_id: int) -> None:
+        if self.interval:
+            self.storage.record_heartbeat(trial_id)  # at once: a trial never beaten is never stale
+            with self._lock:
+                self._trials.add(trial_id)
+
+    def remove(self, trial_id: int) -> None:
+        with self._lock:
+            self._trials.discard(trial_id)
+
+    def _beat(self) -> None:
+        while not self._stop.wait(self.interval):
+            with self._lock:
+                trials = list(self._trials)
+            for trial_id in trials:
+                try:
+                    self.storage.record_heartbeat(trial_id)
+                except Exception:  # a database blip: the next beat retries
+                    pass
+
+
+def running(study: optuna.Study) -> list[FrozenTrial]:
+    """Trials running, here or in another sweeper (possibly a dead one, until its heartbeats
+    are overdue)."""
+    return study.get_trials(deepcopy=False, states=(TrialState.RUNNING,))

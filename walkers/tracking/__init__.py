@@ -205,6 +205,7 @@ class Tracker:
         self.status: str | None = None  # the final status, once end() has set it
         #: steps up to here were logged by an earlier attempt of this run: not logged again
         self.logged_through = logged_through
+        self._sent_through = logged_through or 0  # the highest step sent so far
         self._monitor = None  # MLflow's system metrics sampler, once started
 
     @classmethod
@@ -272,23 +273,20 @@ class Tracker:
 
     def flush(self) -> bool:
         """Send queued metrics; on failure keep them for the next try. True if all were sent."""
-        if not self._pending:
-            return True
-        through = max(m.step for m in self._pending)
         while self._pending:
             chunk = self._pending[:1000]
+            # the mark travels in the same request as the metrics: a crash between them would
+            # leave metrics beyond the mark, logged a second time by the resumed run
+            self._sent_through = max(self._sent_through, *(m.step for m in chunk))
+            mark = RunTag(LOGGED_THROUGH_TAG, str(self._sent_through))
             try:
-                _with_retries(self.client.log_batch, self.run_id, metrics=chunk)
+                _with_retries(self.client.log_batch, self.run_id, metrics=chunk, tags=[mark])
             except Exception as e:
                 log.warning(
                     "MLflow unreachable, %d metrics kept for later: %s", len(self._pending), e
                 )
                 return False
             del self._pending[: len(chunk)]
-        try:
-            self.set_tags({LOGGED_THROUGH_TAG: through})
-        except Exception as e:  # the metrics went through: the mark is retried at the next flush
-            log.warning("could not record %s=%d: %s", LOGGED_THROUGH_TAG, through, e)
         return True
 
     def log_artifact(self, path, artifact_path: str | None = None) -> bool:

@@ -28,6 +28,8 @@ class PrepareTrackingStore(Callback):
         check_ray_cluster(config.hydra.launcher)
         if not str(config.tracking.uri).startswith("sqlite:"):
             return  # a server creates its schema once and handles concurrent clients
+        if "walkers.tuning" in str(config.hydra.sweeper.get("_target_", "")):
+            return  # walkers' sweeper prepares the store itself, once its study is checked
         try:
             client = tracking.connect(config.tracking.uri)
             tracking.get_or_create_experiment(client, config.tracking.experiment)

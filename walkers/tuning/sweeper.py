@@ -240,17 +240,7 @@ class PruningOptunaSweeper(OptunaSweeperImpl):
     def _open_study(self) -> optuna.Study:
         """Create the study or load it to resume (refused if it was scored by another metric)."""
         metric = self.config.optimized_metric
-        self.direction = sweep_direction(metric, self.direction)
-        if self.storage is None and self.config.hydra.runtime.choices.get("optuna") == "postgres":
-            raise ConfigError(
-                "optuna=postgres needs its database: export WALKERS_OPTUNA_STORAGE="
-                "'postgresql+psycopg://<user>:<password>@<host>/<database>' (`make stack` "
-                "prints one) or pass optuna.storage=..."
-            )
         settings = self.config.optuna
-        self.rdb = self.storage and open_storage(
-            self.storage, settings.heartbeat_interval, settings.grace_period, settings.max_retry
-        )
         study = optuna.create_study(
             study_name=self.study_name,
             storage=self.rdb or None,
@@ -269,6 +259,19 @@ class PruningOptunaSweeper(OptunaSweeperImpl):
                 study.tell(stale.number, state=TrialState.FAIL)
         self._log_size(study, metric)
         return study
+
+    def _check_settings(self) -> None:
+        """What the command line may get wrong before any store is touched."""
+        self.direction = sweep_direction(self.config.optimized_metric, self.direction)
+        seeds = self.config.seeds_per_trial
+        if not isinstance(seeds, int) or isinstance(seeds, bool) or seeds < 1:
+            raise ConfigError(f"seeds_per_trial={seeds!r} is not allowed: an integer >= 1")
+        if self.storage is None and self.config.hydra.runtime.choices.get("optuna") == "postgres":
+            raise ConfigError(
+                "optuna=postgres needs its database: export WALKERS_OPTUNA_STORAGE="
+                "'postgresql+psycopg://<user>:<password>@<host>/<database>' (`make stack` "
+                "prints one) or pass optuna.storage=..."
+            )
 
     def _claim(self, study: optuna.Study, beats: Heartbeats) -> list[optuna.Trial]:
         """Up to ``n_jobs`` trials for this sweeper while the study (all its sweepers together)
@@ -334,10 +337,12 @@ class PruningOptunaSweeper(OptunaSweeperImpl):
         for name in fixed:
             space.pop(name, None)
         try:  # both stores answer before anything is created in either
-            seeds = self.config.seeds_per_trial
-            if not isinstance(seeds, int) or isinstance(seeds, bool) or seeds < 1:
-                raise ConfigError(f"seeds_per_trial={seeds!r} is not allowed: an integer >= 1")
+            self._check_settings()
             client = tracking.connect(self.config.tracking.uri)
+            settings = self.config.optuna
+            self.rdb = self.storage and open_storage(
+                self.storage, settings.heartbeat_interval, settings.grace_period, settings.max_retry
+            )
             study = self._open_study()
         except ConfigError as e:  # raised inside Hydra's multirun: one line, not a traceback
             print(f"error: {e}", file=sys.stderr)

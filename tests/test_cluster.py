@@ -241,7 +241,7 @@ def test_a_killed_sweeper_s_trial_is_failed_retried_and_its_run_continued(stack,
     name = "cluster_sweeper_killed"
     command = [
         "-m", "sweeps=pendulum_tiny", *LONGER_TRIAL, *stores(stack, name), "pruner=none",
-        f"hydra.sweeper.study_name={name}", "hydra.sweeper.n_trials=2",
+        f"hydra.sweeper.study_name={name}", "hydra.sweeper.n_trials=2", "seeds_per_trial=2",
         "optuna.heartbeat_interval=1", "optuna.grace_period=4",
     ]  # fmt: skip
     first = spawn_cli([*command, f"hydra.sweep.dir={tmp_path}/first"], tmp_path, merge_output=True)
@@ -264,7 +264,11 @@ def test_a_killed_sweeper_s_trial_is_failed_retried_and_its_run_continued(stack,
     continued = stack["client"].get_run(victim.info.run_id)
     assert continued.info.status == "FINISHED"
     assert continued.data.tags["walkers.trial"] == str(retried[0].number)
-    assert_nothing_running(stack, name, name)
+    runs = runs_of(stack["client"], name)
+    trial_runs = [r for r in runs if r.data.tags.get("walkers.kind") == "trial"]
+    assert len(trial_runs) == 2  # the retry took over the dead trial's run
+    assert len([r for r in runs if "walkers.kind" not in r.data.tags]) == 4  # 2 trials x 2 seeds
+    assert_nothing_running(stack, name, name)  # trial runs included
 
 
 def test_runs_on_the_server_are_evaluated_collected_compared_and_resumed_elsewhere(

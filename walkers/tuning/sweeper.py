@@ -77,6 +77,8 @@ log = logging.getLogger("walkers")
 SAMPLER_TARGETS = ("hydra_plugins.hydra_optuna_sweeper.*", "optuna.samplers.*")
 DONE = (TrialState.COMPLETE, TrialState.PRUNED, TrialState.FAIL)
 STUDY_TAG = "walkers.study"
+#: Trial run tag: the trial a retried trial repeats (its own number if it is no retry).
+ORIGINAL_TRIAL_TAG = "walkers.original_trial"
 #: Study user attribute: the metric its trials are scored by (a resumed study must keep it).
 METRIC_ATTR = "walkers.optimized_metric"
 
@@ -450,19 +452,30 @@ def open_trial_run(
     parent: tracking.Tracker | None, study: optuna.Study, trial: optuna.Trial
 ) -> tracking.Tracker | None:
     """A trial's own MLflow run (``seeds_per_trial`` > 1): its parameters and outcome, nested
-    under the study's run, its seeds' runs nested under it."""
+    under the study's run, its seeds' runs nested under it. A retry of a dead sweeper's trial
+    takes over the run of the trial it retries (as its seeds' jobs continue theirs)."""
     if parent is None:
         return None
+    original = original_number(study._storage.get_trial(trial._trial_id))
     tags = {
         tracking.KIND_TAG: "trial",
         STUDY_TAG: study.study_name,
         "walkers.trial": str(trial.number),
+        ORIGINAL_TRIAL_TAG: str(original),
         "mlflow.parentRunId": parent.run_id,
     }
+    if original != trial.number:
+        query = (
+            f"tags.`{tracking.KIND_TAG}` = 'trial' and tags.`{STUDY_TAG}` = '{study.study_name}'"
+            f" and tags.`{ORIGINAL_TRIAL_TAG}` = '{original}'"
+        )
+        for earlier in tracking.search_runs(parent.client, parent.experiment_id, query):
+            run = tracking.Tracker.reopen(parent.client, earlier.info.run_id, parent.spool_dir)
+            run.set_tags(tags)
+            return run
     name = f"{study.study_name}-trial{trial.number}"
     experiment = parent.client.get_experiment(parent.experiment_id).name
-    run = tracking.Tracker.start(parent.client, experiment, name, tags, parent.spool_dir)
-    return run
+    return tracking.Tracker.start(parent.client, experiment, name, tags, parent.spool_dir)
 
 
 def log_trial_outcome(

@@ -10,6 +10,7 @@ environment). Data persist in ``--dir``: stopping and starting again keeps every
 from __future__ import annotations
 
 import argparse
+import signal
 import socket
 import sys
 import time
@@ -30,6 +31,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--port", type=int, default=5000, help="the MLflow server's port")
     parser.add_argument("--host", default="127.0.0.1", help="0.0.0.0: reachable from other hosts")
     args = parser.parse_args(argv)
+    signal.signal(signal.SIGTERM, signal.default_int_handler)  # `kill`: stop both, like Ctrl-C
     warnings.filterwarnings("ignore", message="XDG_RUNTIME_DIR")  # pgserver's runtime folder
     if port_in_use(args.host, args.port):
         print(f"error: --port={args.port} is in use: pass another (--port / MLFLOW_PORT=...)",

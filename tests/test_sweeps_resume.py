@@ -11,6 +11,7 @@ from optuna.trial import TrialState
 
 from tests.conftest import all_runs, one_line_error, run_cli
 from walkers.errors import ConfigError
+from walkers.tuning.studies import redacted
 from walkers.tuning.sweeper import check_objective
 
 STUDY = "pendulum_tiny"
@@ -149,3 +150,29 @@ def test_a_stored_study_is_continued_only_with_its_metric_and_direction(tmp_path
     with pytest.raises(ConfigError) as error:  # same direction, another metric: not comparable
         check_objective(study, url, "final/return_mean")
     assert "it maximizes final/auc" in str(error.value)
+
+
+def test_a_trial_left_running_without_a_heartbeat_is_failed_and_retried(store):
+    """A sweeper that died right after asking (or a study from before heartbeats) leaves a
+    RUNNING trial that never beat: the next sweeper starts its clock, fails it once the grace
+    period has passed, retries it, and finishes the study."""
+    url = storage(store)
+    optuna.create_study(study_name=STUDY, storage=url, direction="maximize").ask()  # orphaned
+    ok(
+        run_sweep(
+            store, "after", "hydra.sweeper.n_trials=2", "optuna.heartbeat_interval=1",
+            "optuna.grace_period=2",
+        )
+    )  # fmt: skip
+    trials = optuna.load_study(study_name=STUDY, storage=url).trials
+    assert trials[0].state == TrialState.FAIL
+    retries = [t for t in trials if t.system_attrs.get("failed_trial") == 0]
+    assert len(retries) == 1 and retries[0].state in (TrialState.COMPLETE, TrialState.PRUNED)
+    assert len([t for t in trials if t.state != TrialState.FAIL]) == 2  # n_trials done
+    assert not [r for r in all_runs(store["client"]) if r.info.status == "RUNNING"]
+
+
+def test_a_storage_password_never_reaches_logs_or_mlflow():
+    url = "postgresql+psycopg://walkers:s3cret@db.example:5432/optuna"
+    assert "s3cret" not in redacted(url) and "db.example:5432/optuna" in redacted(url)
+    assert redacted("sqlite:////tmp/optuna.db") == "sqlite:////tmp/optuna.db"

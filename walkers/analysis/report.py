@@ -59,7 +59,7 @@ def label(r: AlgoResult) -> str:
 
 
 def budgets_text(c: Comparison) -> str:
-    """"10,000 env steps; offline: 2,000 gradient steps on <dataset>"."""
+    """ "10,000 env steps; offline: 2,000 gradient steps on <dataset>"."""
     parts = []
     for axis, budget in c.budgets.items():
         text = f"{budget:,} {AXIS_NAMES[axis]}" if budget else f"their budget in {AXIS_NAMES[axis]}"

@@ -4,9 +4,10 @@ A :class:`Tracker` owns one MLflow run. Metrics are buffered and written in batc
 write per metric would cost more than a TD3 update); the trainer flushes them after every
 evaluation and checkpoint, so a run's curves move in the UI within one evaluation interval.
 Each flush records how far the run has logged (tag ``walkers.logged_through``); a resumed run,
-which restarts from its last checkpoint, does not log again the steps up to that mark, so no
-step is logged twice. A store that fails mid-run does not stop training: unsent metrics are
-kept and retried at the next flush, and written to a local file if they still can't be sent.
+which restarts from its last checkpoint, does not log a metric again at or before the last step
+MLflow has of it, so no step is logged twice. A store that fails mid-run does not stop
+training: unsent metrics are kept and retried at the next flush, and written to a local file if
+they still can't be sent.
 """
 
 from __future__ import annotations
@@ -206,6 +207,7 @@ class Tracker:
         #: steps up to here were logged by an earlier attempt of this run: not logged again
         self.logged_through = logged_through
         self._sent_through = logged_through or 0  # the highest step sent so far
+        self._logged: dict[str, int] = {}  # a resumed run: each metric's last step in MLflow
         self._monitor = None  # MLflow's system metrics sampler, once started
 
     @classmethod
@@ -221,7 +223,13 @@ class Tracker:
         run = client.get_run(run_id)
         _with_retries(client.update_run, run_id, status="RUNNING")
         mark = run.data.tags.get(LOGGED_THROUGH_TAG) if resumed_training else None
-        return cls(client, run_id, run.info.experiment_id, spool_dir, mark and int(mark))
+        tracker = cls(client, run_id, run.info.experiment_id, spool_dir, mark and int(mark))
+        if resumed_training:  # per metric: a step split over two requests, or final/* never sent
+            tracker._logged = {
+                key: max(m.step for m in client.get_metric_history(run_id, key))
+                for key in run.data.metrics
+            }
+        return tracker
 
     def start_system_metrics(self, every_s: float) -> None:
         """Sample CPU, memory, disk, network (and GPU where present) into the run's "System
@@ -232,7 +240,7 @@ class Tracker:
             self._monitor = SystemMetricsMonitor(
                 self.run_id,
                 sampling_interval=every_s,
-                resume_logging=self.logged_through is not None,
+                resume_logging=bool(self._logged),
                 tracking_uri=self.client.tracking_uri,
             )
             self._monitor.start()
@@ -266,10 +274,12 @@ class Tracker:
 
     def log_metrics(self, metrics: Mapping[str, float], step: int) -> None:
         """Queue metrics at env step ``step``; they are written at the next :meth:`flush`."""
-        if self.logged_through is not None and step <= self.logged_through:
-            return  # an earlier attempt of this run logged this step already
         now = int(time.time() * 1000)
-        self._pending.extend(Metric(k, float(v), now, int(step)) for k, v in metrics.items())
+        self._pending.extend(
+            Metric(k, float(v), now, int(step))
+            for k, v in metrics.items()
+            if step > self._logged.get(k, -1)  # else an earlier attempt of the run logged it
+        )
 
     def flush(self) -> bool:
         """Send queued metrics; on failure keep them for the next try. True if all were sent."""

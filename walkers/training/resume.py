@@ -64,6 +64,9 @@ def load_run(client, cfg: DictConfig, overrides, run_id: str | None = None):
             stored[key] = cfg[key]
     if "total_steps" in stored.get("algo", {}):  # a schedule over the budget (ppo's annealing)
         stored.algo.total_steps = stored.total_steps  # follows a new one
+    for key in cfg:  # settings added since the run was made (e.g. seeds_per_trial): today's
+        if key not in stored:
+            stored[key] = cfg[key]
     stored.tracking = cfg.tracking
     # a sweep job's trial and key are the current attempt's (a retried trial has a new number)
     stored.trial, stored.job_key = cfg.trial, cfg.get("job_key")

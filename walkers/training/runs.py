@@ -17,6 +17,7 @@ from omegaconf import DictConfig, OmegaConf
 from walkers import PROJECT_ROOT, tracking
 from walkers.training.bookkeeping import RESUME_DIR
 from walkers.training.resume import run_dir
+from walkers.tuning.studies import redacted
 
 log = logging.getLogger("walkers")
 
@@ -62,7 +63,7 @@ def open_run(client, cfg: DictConfig, x_axis: str, data=None, extra_tags: dict |
         client, cfg.tracking.experiment, run_name=run_name, tags=tags, spool_dir=spool
     )
     try:
-        tracker.log_params(tracking.flatten(OmegaConf.to_container(cfg, resolve=True)))
+        tracker.log_params(tracking.flatten(shareable(cfg)))
         if data is not None:
             tracker.log_params(dataset_params(data))
     except BaseException:
@@ -81,6 +82,17 @@ def worker_name() -> str:
         if ray.is_initialized():
             return f"{host}/ray-node-{ray.get_runtime_context().get_node_id()[:12]}"
     return host
+
+
+def shareable(cfg: DictConfig) -> dict:
+    """The resolved config as MLflow params, ``config.yaml`` and checkpoints hold it: without
+    the study database's password (jobs get theirs from the sweeper, never from a stored
+    config)."""
+    data = OmegaConf.to_container(cfg, resolve=True)
+    for node in ("trial", "optuna"):
+        if isinstance(data.get(node), dict) and data[node].get("storage"):
+            data[node]["storage"] = redacted(data[node]["storage"])
+    return data
 
 
 def trial_tags(cfg: DictConfig) -> dict[str, str]:
@@ -152,7 +164,7 @@ def prepare_run_dir(cfg: DictConfig, tracker: tracking.Tracker) -> Path:
     folder = run_dir(cfg.work_dir, tracker.run_id)
     config_yaml = folder / "config.yaml"
     config_yaml.parent.mkdir(parents=True, exist_ok=True)
-    config_yaml.write_text(OmegaConf.to_yaml(cfg, resolve=True))
+    config_yaml.write_text(OmegaConf.to_yaml(shareable(cfg)))
     tracker.log_artifact(config_yaml)
     return folder
 

@@ -28,7 +28,12 @@ from walkers.training.bookkeeping import (
 from walkers.training.envs import env_spaces, make_env
 from walkers.training.evaluation import per_target_return, with_normalized_score
 from walkers.training.loops import train_offline, train_online, train_population
-from walkers.training.runs import continue_earlier_attempt, open_run, prepare_run_dir
+from walkers.training.runs import (
+    continue_earlier_attempt,
+    open_run,
+    prepare_run_dir,
+    shareable,
+)
 from walkers.training.validate import is_offline, validate
 from walkers.tuning.trial import TrialReporter
 
@@ -154,7 +159,7 @@ def _book(cfg: DictConfig, tracker, agent, env, eval_env, axis=ENV_STEP_AXIS, vi
         tracker,
         trainer_settings(cfg),
         checkpoint_dir=prepare_run_dir(cfg, tracker) / "checkpoints",
-        checkpoint_extra={"config": OmegaConf.to_container(cfg, resolve=True)},
+        checkpoint_extra={"config": shareable(cfg)},
         video_env=video_env,
         axis=axis,
         **kw,

@@ -15,14 +15,18 @@ from __future__ import annotations
 import fcntl
 import hashlib
 import threading
+import uuid
 from contextlib import contextmanager
 from pathlib import Path
 
 import optuna
 from optuna.storages import RDBStorage, RetryHeartbeatStaleTrialCallback
 from optuna.trial import FrozenTrial, TrialState
+from sqlalchemy.engine import make_url
 
 from walkers.errors import ConfigError
+
+UID_ATTR = "walkers.study_uid"
 
 
 def open_storage(
@@ -41,11 +45,32 @@ def open_storage(
     except Exception as e:
         reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
         raise ConfigError(
-            f"hydra.sweeper.storage={url!r} cannot be used ({type(e).__name__}: {reason}); "
+            f"hydra.sweeper.storage={redacted(url)!r} cannot be used ({type(e).__name__}: "
+            f"{reason}); "
             "give an Optuna RDB URL that works: sqlite:///<file>.db or "
             "postgresql+psycopg://<user>:<password>@<host>/<database> (optuna=postgres reads "
             "WALKERS_OPTUNA_STORAGE)"
         ) from None
+
+
+def redacted(url: str | None) -> str | None:
+    """A storage URL fit for logs, MLflow params and reports: its password hidden."""
+    if not url:
+        return url
+    try:
+        return make_url(url).render_as_string(hide_password=True)
+    except Exception:  # not a URL SQLAlchemy reads (e.g. "None"): nothing to hide
+        return url
+
+
+def study_uid(study: optuna.Study) -> str:
+    """A study's own id, made once (a study user attribute): a study deleted and created again
+    under its name numbers its trials from 0 again, and must not match the old one's runs."""
+    uid = study.user_attrs.get(UID_ATTR)
+    if uid is None:
+        uid = uuid.uuid4().hex[:12]
+        study.set_user_attr(UID_ATTR, uid)
+    return uid
 
 
 def counted_trials(trials: list[FrozenTrial]) -> list[FrozenTrial]:
@@ -92,6 +117,7 @@ class Heartbeats:
     def __init__(self, storage: RDBStorage, interval: int | None):
         self.storage, self.interval = storage, interval
         self._trials: set[int] = set()
+        self._seen: set[int] = set()  # running trials whose clock this sweeper has started
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._beat, name="optuna-heartbeats", daemon=True)
@@ -109,8 +135,21 @@ class Heartbeats:
     def add(self, trial_id: int) -> None:
         if self.interval:
             self.storage.record_heartbeat(trial_id)  # at once: a trial never beaten is never stale
+            self._seen.add(trial_id)
             with self._lock:
                 self._trials.add(trial_id)
+
+    def start_clocks(self, running: list[FrozenTrial]) -> None:
+        """One heartbeat, once, for each running trial first seen here: Optuna never counts a
+        trial without any heartbeat as stale, so one whose sweeper died before it recorded one
+        (or a study from before heartbeats) would otherwise wait forever. A live sweeper's
+        trials keep beating and stay fresh."""
+        if not self.interval:
+            return
+        for trial in running:
+            if trial._trial_id not in self._seen:
+                self._seen.add(trial._trial_id)
+                self.storage.record_heartbeat(trial._trial_id)
 
     def remove(self, trial_id: int) -> None:
         with self._lock:

@@ -67,8 +67,10 @@ from walkers.tuning.studies import (
     counted_trials,
     open_storage,
     original_number,
+    redacted,
     running,
     study_lock,
+    study_uid,
 )
 from walkers.tuning.trial import PRUNED_AT
 
@@ -180,11 +182,13 @@ def record_outcome(
     try:
         value = trial_value(results)  # re-raises what a job raised
     except Exception as e:
-        study.tell(trial, state=TrialState.FAIL)
+        study.tell(trial, state=TrialState.FAIL, skip_if_finished=True)
         log.warning("trial %d failed: %s", trial.number, e)
         return e
     (frozen,) = [t for t in study.get_trials(deepcopy=False) if t.number == trial.number]
-    if PRUNED_AT in frozen.user_attrs:
+    if frozen.state.is_finished():  # another sweeper failed it as stale meanwhile
+        log.warning("trial %d was already told %s elsewhere", trial.number, frozen.state.name)
+    elif PRUNED_AT in frozen.user_attrs:
         study.tell(trial, state=TrialState.PRUNED)
     elif value == infinitely_bad(study):
         log.warning("trial %d scored %s: ranked below every finite score", trial.number, value)
@@ -250,7 +254,8 @@ class PruningOptunaSweeper(OptunaSweeperImpl):
             directions=self._get_directions(),
             load_if_exists=True,
         )
-        check_objective(study, self.storage, metric)
+        check_objective(study, redacted(self.storage), metric)
+        self.uid = f"{study.study_name}-{study_uid(study)}"  # what its jobs' keys start with
         if asked := len(study.trials):
             # A resumed study: a seeded sampler restarted from its seed would propose the same
             # points again, so it continues from seed + the number of trials already asked.
@@ -279,16 +284,18 @@ class PruningOptunaSweeper(OptunaSweeperImpl):
         """Up to ``n_jobs`` trials for this sweeper while the study (all its sweepers together)
         has started fewer than ``n_trials``: waiting ones first (retries, enqueued trials)."""
         with study_lock(self.rdb, study.study_name) if self.rdb else _unlocked():
+            beats.start_clocks(running(study))  # a trial no sweeper ever beat can go stale too
             optuna.storages.fail_stale_trials(study)  # trials of a dead sweeper: FAIL + retry
-            started = [
-                t
-                for t in counted_trials(study.get_trials(deepcopy=False))
-                if t.state != TrialState.WAITING
-            ]
+            trials = study.get_trials(deepcopy=False)
+            started = [t for t in counted_trials(trials) if t.state != TrialState.WAITING]
             room = self.n_trials - len(started)
+            if len(trials) and self.sampler_cfg.get("seed") is not None:
+                # sweepers sharing the study must not draw the same proposals: the sampler's
+                # seed moves on with the trials asked so far, whoever asked them
+                study.sampler = self.sampler = self._make_sampler(seed_offset=len(trials))
             claimed = [study.ask() for _ in range(max(0, min(self.n_jobs, room)))]
-        for trial in claimed:
-            beats.add(trial._trial_id)
+            for trial in claimed:  # beaten before the lock is let go: never without a heartbeat
+                beats.add(trial._trial_id)
         return claimed
 
     def _log_size(self, study: optuna.Study, metric: str) -> None:
@@ -298,7 +305,7 @@ class PruningOptunaSweeper(OptunaSweeperImpl):
                 "study %r in %s already has %d trials (of n_trials=%d asked): nothing to run; "
                 "reporting its best (raise hydra.sweeper.n_trials to continue it)",
                 name,
-                self.storage,
+                redacted(self.storage),
                 done,
                 self.n_trials,
             )
@@ -306,7 +313,7 @@ class PruningOptunaSweeper(OptunaSweeperImpl):
             log.info(
                 "study %r in %s: %d of %d trials done; %s %s",
                 name,
-                self.storage,
+                redacted(self.storage),
                 done,
                 self.n_trials,
                 self.direction.removesuffix("e") + "ing",
@@ -322,7 +329,7 @@ class PruningOptunaSweeper(OptunaSweeperImpl):
             f"trial.storage='{self.storage}'",
             f"trial.id={trial._trial_id}",
             f"trial.number={trial.number}",
-            f"job_key='{study.study_name}/trial{original_number(frozen)}/seed{seed}'",
+            f"job_key='{self.uid}/trial{original_number(frozen)}/seed{seed}'",
         ]
         if self.config.seeds_per_trial > 1:
             overrides.append(f"seed={seed}")
@@ -375,10 +382,15 @@ class PruningOptunaSweeper(OptunaSweeperImpl):
         FAIL and their MLflow runs ended, so nothing is left RUNNING.
         """
         seeds = [self.config.seed + i for i in range(self.config.seeds_per_trial)]
-        trial_runs = [open_trial_run(parent, study, t) if len(seeds) > 1 else None for t in trials]
+        trial_runs: list[tracking.Tracker | None] = []  # per trial (None: one seed, no run)
+        opened: list[tracking.Tracker] = []
         jobs = []
-        with tracking.ending([r for r in trial_runs if r is not None]):
+        with tracking.ending(opened):  # a list that grows: every trial run opened is ended
             try:
+                for trial in trials:
+                    run = open_trial_run(parent, study, trial) if len(seeds) > 1 else None
+                    trial_runs.append(run)
+                    opened.extend([run] if run is not None else [])
                 params = self._configure_trials(trials, space, fixed, fixed_overrides)
                 for trial, job, trial_run in zip(trials, params, trial_runs, strict=True):
                     nest_under = (trial_run or parent) and (trial_run or parent).run_id
@@ -388,17 +400,21 @@ class PruningOptunaSweeper(OptunaSweeperImpl):
             except BaseException:
                 for trial in trials:
                     log.warning("trial %d did not finish: FAIL", trial.number)
-                    study.tell(trial, state=TrialState.FAIL)
+                    study.tell(trial, state=TrialState.FAIL, skip_if_finished=True)
                     beats.remove(trial._trial_id)
                 raise
             self.job_idx += len(returns)
             failures = []
-            for i, (trial, trial_run) in enumerate(zip(trials, trial_runs, strict=True)):
+            for i, trial in enumerate(trials):
                 results = returns[i * len(seeds) : (i + 1) * len(seeds)]
                 failures.append(record_outcome(study, trial, results))
                 beats.remove(trial._trial_id)
+            for trial, trial_run in zip(trials, trial_runs, strict=True):  # all told first
                 if trial_run is not None:
-                    log_trial_outcome(trial_run, study, trial, self.config.optimized_metric)
+                    try:
+                        log_trial_outcome(trial_run, study, trial, self.config.optimized_metric)
+                    except Exception as e:  # the study has the outcome; MLflow's copy is extra
+                        log.warning("trial %d's outcome not logged to MLflow: %s", trial.number, e)
         failures = [e for e in failures if e is not None]
         if len(failures) / len(trials) > self.max_failure_rate:
             raise failures[0]
@@ -413,7 +429,7 @@ class PruningOptunaSweeper(OptunaSweeperImpl):
         results = {
             "name": "optuna",
             "study_name": study.study_name,
-            "storage": self.storage,
+            "storage": redacted(self.storage),
             "optimized_metric": metric,
             "direction": self.direction,
             "best_trial": best.number,
@@ -498,7 +514,7 @@ def open_parent_run(
     tags = {
         tracking.KIND_TAG: "study",
         STUDY_TAG: study.study_name,
-        "optuna.storage": str(storage),
+        "optuna.storage": str(redacted(storage)),
         "walkers.optimized_metric": config.optimized_metric,
         "walkers.direction": study.direction.name.lower(),
     }

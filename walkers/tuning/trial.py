@@ -93,4 +93,6 @@ class TrialReporter:
         if len(values) < self.seeds:
             return False  # the other seeds have not evaluated this step yet
         mean = sum(values) / len(values)
+        # a fresh view of the trial: the other seeds' jobs have reported steps since it was read
+        self.trial = optuna.trial.Trial(self.trial.study, self.trial._trial_id)
         return math.isfinite(mean) and self._report(step, mean)

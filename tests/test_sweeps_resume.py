@@ -176,3 +176,23 @@ def test_a_storage_password_never_reaches_logs_or_mlflow():
     url = "postgresql+psycopg://walkers:s3cret@db.example:5432/optuna"
     assert "s3cret" not in redacted(url) and "db.example:5432/optuna" in redacted(url)
     assert redacted("sqlite:////tmp/optuna.db") == "sqlite:////tmp/optuna.db"
+
+
+def test_the_retry_of_a_pruned_trial_is_told_pruned_without_running(store):
+    """A sweeper that died after its trial was pruned but before telling it: the retry the next
+    sweeper makes inherits ``pruned_at_step`` and is told PRUNED, not trained again."""
+    url = storage(store)
+    study = optuna.create_study(study_name=STUDY, storage=url, direction="maximize")
+    study.add_trial(optuna.create_trial(state=TrialState.FAIL, user_attrs={"pruned_at_step": 200}))
+    study.add_trial(  # what RetryHeartbeatStaleTrialCallback makes of it
+        optuna.create_trial(
+            state=TrialState.WAITING,
+            user_attrs={"pruned_at_step": 200},
+            system_attrs={"failed_trial": 0, "retry_history": [0]},
+        )
+    )
+    ok(run_sweep(store, "retry", "hydra.sweeper.n_trials=1"))
+    failed, retry = optuna.load_study(study_name=STUDY, storage=url).trials
+    assert failed.state == TrialState.FAIL and retry.state == TrialState.PRUNED
+    training = [r for r in all_runs(store["client"]) if "walkers.kind" not in r.data.tags]
+    assert training == []  # nothing trained again

@@ -366,13 +366,28 @@ class PruningOptunaSweeper(OptunaSweeperImpl):
         ):
             while True:
                 if trials := self._claim(study, beats):
-                    self._run_batch(study, trials, space, fixed, fixed_overrides, parent, beats)
+                    if trials := self._without_decided(study, trials, beats):
+                        self._run_batch(study, trials, space, fixed, fixed_overrides, parent, beats)
                 elif others := running(study):  # another sweeper's: wait, retry if it died
                     log.info("waiting for %d trials of other sweepers on the study", len(others))
                     time.sleep(poll)
                 else:
                     break
             self._report(study, fixed, parent)
+
+    @staticmethod
+    def _without_decided(study, trials, beats) -> list[optuna.Trial]:
+        """``trials`` less the retries of trials their pruner had stopped before their sweeper
+        died (the retry inherits ``pruned_at_step``): those are told PRUNED, not run again."""
+        to_run = []
+        for trial in trials:
+            if PRUNED_AT in study._storage.get_trial(trial._trial_id).user_attrs:
+                log.info("trial %d repeats a pruned trial: PRUNED", trial.number)
+                study.tell(trial, state=TrialState.PRUNED)
+                beats.remove(trial._trial_id)
+            else:
+                to_run.append(trial)
+        return to_run
 
     def _run_batch(self, study, trials, space, fixed, fixed_overrides, parent, beats) -> None:
         """Launch the jobs of ``trials`` (one per seed), tell the study how each trial ended.

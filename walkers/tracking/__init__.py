@@ -249,6 +249,20 @@ class Tracker:
             self._monitor = None
 
     @classmethod
+    def reopen_or_start(
+        cls, client, experiment: str, query: str, run_name: str, tags: dict, spool_dir
+    ) -> Tracker:
+        """The first run of ``experiment`` matching ``query`` reopened (given ``tags``, which
+        may have changed), or else a new run: a study's or a trial's run, continued by a resumed
+        study or a retried trial."""
+        experiment_id = get_or_create_experiment(client, experiment)
+        for run in search_runs(client, experiment_id, query):
+            tracker = cls.reopen(client, run.info.run_id, spool_dir)
+            tracker.set_tags(tags)
+            return tracker
+        return cls.start(client, experiment, run_name=run_name, tags=tags, spool_dir=spool_dir)
+
+    @classmethod
     def attach(cls, client, run_id: str, spool_dir) -> Tracker:
         """Log more to an existing run (e.g. evaluation videos) without changing its status."""
         return cls(client, run_id, client.get_run(run_id).info.experiment_id, spool_dir)

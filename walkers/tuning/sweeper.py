@@ -495,25 +495,24 @@ def open_trial_run(
         ORIGINAL_TRIAL_TAG: str(original),
         "mlflow.parentRunId": parent.run_id,
     }
-    if original != trial.number:
-        query = (
-            f"tags.`{tracking.KIND_TAG}` = 'trial' and tags.`{STUDY_TAG}` = '{study.study_name}'"
-            f" and tags.`{ORIGINAL_TRIAL_TAG}` = '{original}'"
-        )
-        for earlier in tracking.search_runs(parent.client, parent.experiment_id, query):
-            run = tracking.Tracker.reopen(parent.client, earlier.info.run_id, parent.spool_dir)
-            run.set_tags(tags)
-            return run
-    name = f"{study.study_name}-trial{trial.number}"
     experiment = parent.client.get_experiment(parent.experiment_id).name
-    return tracking.Tracker.start(parent.client, experiment, name, tags, parent.spool_dir)
+    name = f"{study.study_name}-trial{trial.number}"
+    if original == trial.number:  # a first attempt: a run of its own
+        return tracking.Tracker.start(parent.client, experiment, name, tags, parent.spool_dir)
+    query = (  # a retry: the run of the trial it repeats
+        f"tags.`{tracking.KIND_TAG}` = 'trial' and tags.`{STUDY_TAG}` = '{study.study_name}'"
+        f" and tags.`{ORIGINAL_TRIAL_TAG}` = '{original}'"
+    )
+    return tracking.Tracker.reopen_or_start(
+        parent.client, experiment, query, name, tags, parent.spool_dir
+    )
 
 
 def log_trial_outcome(
     run: tracking.Tracker, study: optuna.Study, trial: optuna.Trial, metric: str
 ) -> None:
     """The trial's sampled parameters, state and value (the mean over its seeds) on its run."""
-    (frozen,) = [t for t in study.get_trials(deepcopy=False) if t.number == trial.number]
+    frozen = study._storage.get_trial(trial._trial_id)
     run.log_params({k: str(v) for k, v in frozen.params.items()})
     run.set_tags({"walkers.trial_state": frozen.state.name})
     if frozen.value is not None:
@@ -524,8 +523,6 @@ def open_parent_run(
     client, config: DictConfig, study: optuna.Study, storage: str | None
 ) -> tracking.Tracker:
     """The study's MLflow parent run: reopened when a study is resumed, else created."""
-    experiment_id = tracking.get_or_create_experiment(client, config.tracking.experiment)
-    spool = Path(config.work_dir) / "spool"
     tags = {
         tracking.KIND_TAG: "study",
         STUDY_TAG: study.study_name,
@@ -533,13 +530,15 @@ def open_parent_run(
         "walkers.optimized_metric": config.optimized_metric,
         "walkers.direction": study.direction.name.lower(),
     }
-    query = f"tags.`walkers.kind` = 'study' and tags.`{STUDY_TAG}` = '{study.study_name}'"
-    for run in tracking.search_runs(client, experiment_id, query):
-        parent = tracking.Tracker.reopen(client, run.info.run_id, spool)
-        parent.set_tags(tags)  # a study's run from before these tags existed gets them too
-        return parent
-    run_name = f"study-{study.study_name}"
-    return tracking.Tracker.start(client, config.tracking.experiment, run_name, tags, spool)
+    query = f"tags.`{tracking.KIND_TAG}` = 'study' and tags.`{STUDY_TAG}` = '{study.study_name}'"
+    return tracking.Tracker.reopen_or_start(
+        client,
+        config.tracking.experiment,
+        query,
+        f"study-{study.study_name}",
+        tags,  # also given to a study's run from before these tags existed
+        Path(config.work_dir) / "spool",
+    )
 
 
 @contextmanager

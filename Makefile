@@ -46,6 +46,9 @@ test: $(STAMP)  ## run the test suite (real tiny trainings, sweeps, offline RL, 
 test-cluster: $(STAMP)  ## the scale-out tests: a real Ray cluster on loopback, PostgreSQL, an MLflow server (minutes)
 	$(PY) -m pytest -q -m cluster --durations=10 $(ARGS)
 
+chaos: $(STAMP)  ## the fault matrix: a sweep on a loopback cluster under every fault, repeated; prints the table (ARGS="--reps 3 --seed 0")
+	$(PY) -m tests.chaos $(ARGS)
+
 stack: $(STAMP)  ## PostgreSQL + an MLflow server on it for a team or a cluster, until Ctrl-C (prints the URIs; MLFLOW_PORT=...)
 	$(PY) -m walkers.stack --port $(MLFLOW_PORT) $(ARGS)
 
@@ -74,4 +77,4 @@ clean:  ## remove run outputs (mlflow.db, mlartifacts/, outputs/, multirun/, .wa
 	rm -rf mlflow.db mlruns mlartifacts outputs multirun .walkers reports .pytest_cache .ruff_cache
 	find . -name __pycache__ -type d -prune -not -path './$(VENV)/*' -exec rm -rf {} +
 
-.PHONY: help install train ab ab-all offline compare test test-cluster stack bench bench-throughput bench-learning bench-scale lint ui clean
+.PHONY: help install train ab ab-all offline compare test test-cluster chaos stack bench bench-throughput bench-learning bench-scale lint ui clean

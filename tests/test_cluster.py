@@ -10,95 +10,73 @@ and resumed from another directory, the submitit launcher, and bad addresses ref
 from __future__ import annotations
 
 import os
+import random
+import shutil
 import signal
-import socket
 import subprocess
 import sys
+import tempfile
 import time
 from collections import Counter
 from pathlib import Path
 
 import optuna
-import psutil
 import pytest
 from mlflow.tracking import MlflowClient
 from optuna.trial import TrialState
 
+from tests import cluster_kit
+from tests.cluster_kit import LONGER_TRIAL, TRIAL, LocalRay, free_port, runs_of, start_stack
 from tests.conftest import one_line_error, run_cli, spawn_cli
-from walkers.tracking.servers import start_mlflow_server, start_postgres
+from walkers.tracking.servers import start_mlflow_server
+from walkers.tuning.studies import STORAGE_ENV
 
 pytestmark = pytest.mark.cluster
 
-RAY = str(Path(sys.executable).with_name("ray"))
-#: A sweep trial in seconds: TD3 on Pendulum, small nets, learning from step 200.
-TRIAL = [
-    "algo.hidden_sizes=[32,32]",
-    "env.learning_starts=200",
-    "total_steps=600",
-    "eval_every=300",
-    "eval_episodes=1",
-    "checkpoint_every=300",
-    "pruning.warmup_steps=300",
-    "progress=false",
-]
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
 
 @pytest.fixture(scope="module")
-def stack(tmp_path_factory):
-    """PostgreSQL with the mlflow and optuna databases, an MLflow server on it."""
-    folder = tmp_path_factory.mktemp("stack")
-    server, uris = start_postgres(folder / "postgres")
-    mlflow = start_mlflow_server(uris["mlflow"], folder / "artifacts", free_port(), log_dir=folder)
+def stack():
+    """PostgreSQL with the mlflow and optuna databases (the latter takes a password, which every
+    command here gets by reference: WALKERS_OPTUNA_STORAGE), an MLflow server on it."""
+    # Not under pytest's tmp root: PostgreSQL runs as the unprivileged user `pgserver`, and any
+    # other pytest session that starts on the machine resets that root to mode 0700, which cuts
+    # PostgreSQL off from its own data ("PANIC: could not open file .../pg_control: Permission
+    # denied"), then the MLflow server (503) and every study with it.
+    folder = Path(tempfile.mkdtemp(prefix="walkers-stack-"))
+    kit = start_stack(folder)
+    before = os.environ.get(STORAGE_ENV)
+    os.environ[STORAGE_ENV] = kit.optuna_url  # every command started here inherits it
     yield {
-        "tracking": mlflow.url,
-        "optuna": uris["optuna"],
-        "client": MlflowClient(mlflow.url),
-        "backend": uris["mlflow"],
-        "folder": folder,
+        "tracking": kit.tracking,
+        "optuna": kit.admin_optuna_url,
+        "client": MlflowClient(kit.tracking),
+        "backend": kit.backend,
+        "folder": kit.folder,
+        "kit": kit,
     }
-    mlflow.stop()
-    server.cleanup()
+    if before is None:
+        os.environ.pop(STORAGE_ENV, None)
+    else:
+        os.environ[STORAGE_ENV] = before
+    kit.stop()
+    shutil.rmtree(folder, ignore_errors=True)
 
 
 @pytest.fixture(scope="module")
-def ray_cluster(tmp_path_factory):
-    """A head and a worker node on loopback, one CPU each (so jobs spread over both)."""
-    folder = tmp_path_factory.mktemp("ray")
-    port = free_port()
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "RAY_USAGE_STATS_ENABLED": "0"}
-    env.pop("MLFLOW_TRACKING_URI", None)
-    common = ["--num-cpus", "1", "--disable-usage-stats"]
-    head = [RAY, "start", "--head", "--port", str(port), "--include-dashboard=false", *common]
-    subprocess.run(head, cwd=folder, env=env, check=True, capture_output=True, timeout=180)
-    worker = [RAY, "start", f"--address=127.0.0.1:{port}", *common]
-    subprocess.run(worker, cwd=folder, env=env, check=True, capture_output=True, timeout=180)
-    yield f"127.0.0.1:{port}"
-    subprocess.run([RAY, "stop", "--force"], capture_output=True, timeout=120)
+def ray_cluster(stack):
+    """A head and a worker node on loopback, one CPU each (so jobs spread over both); the nodes
+    have the study's storage in their environment, as a cluster's machines would."""
+    ray = LocalRay(nodes=2, env={STORAGE_ENV: stack["kit"].optuna_url}).start()
+    yield ray
+    ray.stop()
 
 
 def stores(stack, experiment: str) -> list[str]:
-    return [
-        "tracking=server",
-        f"tracking.uri={stack['tracking']}",
-        f"tracking.experiment={experiment}",
-        "optuna=postgres",
-        f"optuna.storage='{stack['optuna']}'",
-    ]
+    return cluster_kit.stores(stack["kit"], experiment)
 
 
-def on_ray(address: str) -> list[str]:
-    return ["hydra/launcher=ray_cluster", f"hydra.launcher.ray.init.address={address}"]
-
-
-def runs_of(client: MlflowClient, experiment: str) -> list:
-    experiment_id = client.get_experiment_by_name(experiment).experiment_id
-    return client.search_runs([experiment_id], max_results=1000)
+def on_ray(ray: LocalRay) -> list[str]:
+    return ["hydra/launcher=ray_cluster", f"hydra.launcher.ray.init.address={ray.address}"]
 
 
 def study(stack, name: str) -> optuna.Study:
@@ -118,7 +96,7 @@ def assert_nothing_running(stack, experiment: str, study_name: str) -> None:
 
 def test_a_sweep_with_two_seeds_per_trial_runs_across_the_cluster(stack, ray_cluster, tmp_path):
     name = "cluster_seeds"
-    ok(
+    output = ok(
         run_cli(
             [
                 "-m", "sweeps=pendulum_tiny", *TRIAL, *stores(stack, name), *on_ray(ray_cluster),
@@ -151,6 +129,18 @@ def test_a_sweep_with_two_seeds_per_trial_runs_across_the_cluster(stack, ray_clu
         assert trial.value == pytest.approx(mean)
     assert len({r.data.tags["walkers.worker"] for r in seed_runs}) == 2  # both Ray nodes trained
     assert_nothing_running(stack, name, name)
+
+    # The study's password went to the jobs by reference only: their overrides say where it is,
+    # and it is in no file (sweep dir, job dirs, local run folders, Ray's session logs, the
+    # server's artifacts and log), no console line, no MLflow param or tag.
+    kit = stack["kit"]
+    overrides = (tmp_path / "sweep" / "0" / ".hydra" / "overrides.yaml").read_text()
+    assert f"trial.storage='${{oc.env:{STORAGE_ENV}}}'" in overrides
+    broken = cluster_kit.broken_promises(
+        kit, name, [tmp_path, *ray_cluster.places(), *kit.places()], [output], compare=False
+    )
+    assert broken == []
+    assert ray_cluster.places() and any(ray_cluster.temp_dir.rglob("runtime_env_agent.log"))
 
 
 def test_two_sweepers_on_one_study_run_exactly_n_trials(stack, tmp_path):
@@ -200,9 +190,6 @@ def _running_run_with_checkpoint(client, experiment: str, process: subprocess.Po
     raise AssertionError("no run uploaded a checkpoint in time")
 
 
-LONGER_TRIAL = [*TRIAL, "total_steps=3000", "checkpoint_every=500", "eval_every=500"]
-
-
 def test_a_job_whose_worker_is_killed_continues_its_run_on_a_retry(stack, ray_cluster, tmp_path):
     name = "cluster_worker_killed"
     sweeper = spawn_cli(
@@ -216,8 +203,7 @@ def test_a_job_whose_worker_is_killed_continues_its_run_on_a_retry(stack, ray_cl
     )  # fmt: skip
     try:
         victim = _running_run_with_checkpoint(stack["client"], name, sweeper)
-        jobs = [p for p in psutil.process_iter(["cmdline"]) if "ray::_run_job" in " ".join(
-            p.info["cmdline"] or [])]  # fmt: skip
+        jobs = ray_cluster.jobs()
         assert len(jobs) == 1, jobs  # n_jobs=1: the one job training now
         jobs[0].send_signal(signal.SIGKILL)
         log = sweeper.communicate(timeout=900)[0]
@@ -370,7 +356,7 @@ def test_bad_addresses_are_one_line_errors_and_create_nothing(stack, tmp_path, b
 def test_training_goes_on_while_the_tracking_server_restarts(stack, tmp_path):
     """The server stops mid-run and comes back: the run finishes and every metric arrives."""
     port = free_port()
-    server = start_mlflow_server(stack["backend"], stack["folder"] / "artifacts", port)
+    server = start_mlflow_server(stack["backend"], stack["folder"] / "artifacts", port, workers=1)
     client = MlflowClient(server.url)
     name = "cluster_server_restart"
     args = [
@@ -391,7 +377,9 @@ def test_training_goes_on_while_the_tracking_server_restarts(stack, tmp_path):
         server.stop()  # down while the run keeps training
         time.sleep(8)
         assert training.poll() is None  # training did not stop
-        server = start_mlflow_server(stack["backend"], stack["folder"] / "artifacts", port)
+        server = start_mlflow_server(
+            stack["backend"], stack["folder"] / "artifacts", port, workers=1
+        )
         log = training.communicate(timeout=600)[0]
     finally:
         if training.poll() is None:
@@ -399,7 +387,7 @@ def test_training_goes_on_while_the_tracking_server_restarts(stack, tmp_path):
         server.stop()
     assert training.returncode == 0, log[-3000:]
     assert "metrics kept for later" in log
-    server = start_mlflow_server(stack["backend"], stack["folder"] / "artifacts", port)
+    server = start_mlflow_server(stack["backend"], stack["folder"] / "artifacts", port, workers=1)
     try:
         (run,) = runs_of(client, name)
         steps = [m.step for m in client.get_metric_history(run.info.run_id, "eval/return_mean")]
@@ -407,3 +395,38 @@ def test_training_goes_on_while_the_tracking_server_restarts(stack, tmp_path):
         assert steps == list(range(400, 8001, 400))  # every evaluation arrived, none twice
     finally:
         server.stop()
+
+
+@pytest.mark.parametrize(
+    "fault",
+    [
+        "kill -9 a job, population=2",
+        "Ray retries exhausted",
+        "Ctrl-C of the driver",
+        "PostgreSQL down",
+    ],
+)
+def test_a_sweep_under_a_fault_keeps_every_promise(stack, ray_cluster, tmp_path, fault):
+    """The core of `make chaos` (tests/chaos.py, every fault, several repetitions): a 2-trial
+    sweep on the cluster with one fault injected at a seeded random time; afterwards nothing is
+    RUNNING, every trial ended, no evaluation was logged twice, the secret is nowhere, and
+    walkers.compare reports on what finished."""
+    name = "fault_" + "".join(c if c.isalnum() else "_" for c in fault.lower())
+    rng = random.Random(sum(map(ord, fault)))
+    result = cluster_kit.run_fault(stack["kit"], ray_cluster, fault, name, tmp_path, rng)
+    assert result.broken == [], f"{fault} ({result.done}): {result.broken}"
+    runs = runs_of(stack["client"], name)
+    if fault.startswith("kill -9 a job, population"):
+        # the retry continued the killed job's 2 member runs (or, killed before any checkpoint,
+        # ended them FAILED as superseded and started 2 new ones): 2 jobs x 2 members count
+        assert result.done.startswith("killed job"), result.done
+        assert "ran before as run(s)" in result.output  # the retry found the killed job's runs
+        members = [r for r in runs if "walkers.population_member" in r.data.tags]
+        current = [r for r in members if "walkers.superseded" not in r.data.tags]
+        assert len(current) == 2 * 2 and all(r.info.status == "FINISHED" for r in current)
+    if fault == "Ray retries exhausted":
+        states = Counter(t.state.name for t in study(stack, name).trials)
+        assert states["FAIL"] >= 1, states
+        assert any(r.info.status == "FAILED" for r in runs)
+    if fault == "Ctrl-C of the driver":
+        assert any(r.info.status == "KILLED" for r in runs), [r.info.status for r in runs]

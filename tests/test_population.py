@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import signal
+
 import numpy as np
 import pytest
 import torch
 
-from tests.conftest import TINY, all_runs, compose_cfg
+from tests.conftest import TINY, all_runs, compose_cfg, run_cli, signal_once_checkpointed
 from walkers.agents.base import Transition
 from walkers.agents.td3 import TD3
 from walkers.errors import ConfigError
@@ -189,3 +191,27 @@ def test_a_population_resumes_together(store):
 def test_bad_population(overrides, expected):
     with pytest.raises(ConfigError, match=expected):
         validate(compose_cfg(overrides))
+
+
+def test_a_population_job_run_again_continues_its_member_runs(store):
+    """A cluster runs a job again when its worker died (kill -9): a population's job finds the
+    K runs of its first attempt by its job key and continues them together, starting none."""
+    args = ["algo=ddpg", "env=pendulum", "population=2", *TINY, "total_steps=1500",
+            "algo.learning_starts=100", "algo.hidden_sizes=[16,16]",
+            "job_key=study-3f2a/trial0/seed0", *store["overrides"]]  # fmt: skip
+    code, _, _ = signal_once_checkpointed(args, store["path"], "last.pt", signal.SIGKILL)
+    assert code == -signal.SIGKILL
+    client = store["client"]
+    first = {r.info.run_id for r in all_runs(client)}
+    assert len(first) == 2 and all(r.info.status == "RUNNING" for r in all_runs(client))
+
+    again = run_cli(args, cwd=store["path"])  # the job's second attempt: the same command
+    assert again.returncode == 0, again.stderr[-3000:]
+    log = again.stdout + again.stderr
+    assert "ran before as run(s)" in log and "continuing it" in log
+    runs = all_runs(client)
+    assert {r.info.run_id for r in runs} == first  # continued, not duplicated
+    for run in runs:
+        assert run.info.status == "FINISHED"
+        steps = [m.step for m in client.get_metric_history(run.info.run_id, "eval/return_mean")]
+        assert steps == sorted(set(steps)) and steps[-1] == 1500  # none twice, to the end

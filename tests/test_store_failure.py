@@ -59,6 +59,7 @@ def test_training_outlives_its_tracking_server(tmp_path, monkeypatch):
     # fail fast instead of MLflow's default minutes of HTTP retries
     monkeypatch.setenv("MLFLOW_HTTP_REQUEST_MAX_RETRIES", "0")
     monkeypatch.setenv("MLFLOW_HTTP_REQUEST_TIMEOUT", "3")
+    monkeypatch.setenv("WALKERS_STORE_PATIENCE_S", "5")  # the server never comes back
     proc = spawn_cli(
         [
             "env=pendulum",

@@ -124,13 +124,25 @@ REFUSED = [
     ),
     (["optimized_metric=loss"], ["optimized_metric='loss'", "final/steps_to_threshold (min"]),
     (["seeds_per_trial=0"], ["seeds_per_trial=0", "an integer >= 1"]),
+    # a password on the command line would be written into every job's .hydra/ files
+    (
+        ["hydra.sweeper.storage='postgresql+psycopg://walker:hunter2@127.0.0.1:1/optuna'"],
+        ["carries a password", "walker:***@", "export WALKERS_OPTUNA_STORAGE"],
+    ),
+    (['hydra.sweeper.study_name="it\'s"'], ['study_name="it\'s"', "no quotes"]),
+    (
+        ["tracking.uri=http://walker:hunter2@127.0.0.1:1"],
+        ["tracking.uri='http://walker:***@127.0.0.1:1'", "MLFLOW_TRACKING_PASSWORD"],
+    ),
 ]
 
 
 @pytest.mark.parametrize("args,expected", REFUSED, ids=lambda c: " ".join(c))
 def test_a_sweep_that_would_optimize_the_wrong_way_is_refused(store, args, expected):
-    error = one_line_error(run_sweep(store, "refused", *args))
+    result = run_sweep(store, "refused", *args)
+    error = one_line_error(result)
     assert all(word in error for word in expected), error
+    assert "hunter2" not in result.stdout + result.stderr
     assert not (store["path"] / "optuna.db").exists()  # no study
     assert all_runs(store["client"]) == []  # no MLflow run
 
@@ -196,3 +208,13 @@ def test_the_retry_of_a_pruned_trial_is_told_pruned_without_running(store):
     assert failed.state == TrialState.FAIL and retry.state == TrialState.PRUNED
     training = [r for r in all_runs(store["client"]) if "walkers.kind" not in r.data.tags]
     assert training == []  # nothing trained again
+
+
+def test_a_storage_path_with_a_quote_reaches_the_jobs_intact(store):
+    """The storage travels to each job as a quoted override: a quote in it must survive."""
+    folder = store["path"] / "it's here"
+    folder.mkdir()
+    url = f"sqlite:///{folder / 'optuna.db'}"
+    ok(run_sweep(store, "quoted", "hydra.sweeper.n_trials=1", f'hydra.sweeper.storage="{url}"'))
+    (trial,) = optuna.load_study(study_name=STUDY, storage=url).trials
+    assert trial.state == TrialState.COMPLETE and trial.intermediate_values  # the job reported

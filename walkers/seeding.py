@@ -15,9 +15,13 @@ same at every evaluation, so evaluations are comparable across checkpoints).
 
 from __future__ import annotations
 
+import logging
+
 import gymnasium as gym
 import numpy as np
 import torch
+
+log = logging.getLogger("walkers")
 
 #: The named streams of a run; a number is a stream's spawn key: never renumber one.
 STREAMS = {
@@ -67,3 +71,28 @@ def restore_env_rng(env: gym.Env, state: dict) -> None:
     generator = np.random.Generator(getattr(np.random, state["bit_generator"])())
     generator.bit_generator.state = state
     env.unwrapped.np_random = generator
+
+
+def torch_rng_state() -> dict:
+    """torch's global generators, as a checkpoint keeps them: the CPU's (``torch_rng``) and,
+    when the run uses CUDA, every CUDA device's (``cuda_rng``; None otherwise). Updates draw
+    from them (TD3's target smoothing noise on the agent's device)."""
+    cuda = torch.cuda.get_rng_state_all() if torch.cuda.is_initialized() else None
+    return {"torch_rng": torch.get_rng_state(), "cuda_rng": cuda}
+
+
+def restore_torch_rng(state: dict) -> None:
+    """Set torch's generators back to a checkpoint's :func:`torch_rng_state`."""
+    torch.set_rng_state(state["torch_rng"])
+    cuda = state.get("cuda_rng")
+    if cuda is None:
+        return
+    if torch.cuda.is_available() and torch.cuda.device_count() == len(cuda):
+        torch.cuda.set_rng_state_all(cuda)
+    else:
+        log.warning(
+            "the checkpoint's CUDA random state (%d devices) cannot be restored on this machine "
+            "(%d devices): updates draw other noise than the run would have",
+            len(cuda),
+            torch.cuda.device_count() if torch.cuda.is_available() else 0,
+        )

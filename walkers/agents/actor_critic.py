@@ -215,7 +215,7 @@ class ActorCritic(Agent):
         # Critic: y = r + gamma (1 - d) V'(s');  theta_i <- argmin N^-1 sum (y - Q_i)^2
         critic_loss, q_mean = self._critic_loss(b, critic_noise)
         critic_bad = guarded_step(self.critic_optimizer, critic_loss, self.num_critics)
-        self.guard.record(critic_bad)
+        actor_bad = None  # this update's actor step skipped (None: no actor step this time)
         metrics = {"loss/critic": _logged(critic_loss), "train/q_mean": _logged(q_mean)}
 
         # Every d updates: the policy gradient (DDPG/TD3: deterministic, on Q_1), then the soft
@@ -226,12 +226,14 @@ class ActorCritic(Agent):
             self.critic.requires_grad_(True)
             # critic_bad, not the critic loss: under CUDA graphs the actor-loss run has already
             # reclaimed the critic-loss run's outputs.
-            guarded_step(self.actor_optimizer, actor_loss, 1, also_bad=critic_bad)
+            actor_bad = guarded_step(self.actor_optimizer, actor_loss, 1, also_bad=critic_bad)
             metrics["loss/actor"] = _logged(actor_loss)
-            metrics |= self.after_actor_step(actor_info, critic_bad)
+            metrics |= self.after_actor_step(actor_info, actor_bad)
             soft_update(self.critic_target, self.critic, self.tau)
             if self.actor_target is not None:
                 soft_update(self.actor_target, self.actor, self.tau)
+        # skipped: a critic step, or the actor's latest step, was (health/*, divergence_patience)
+        self.guard.record(critic_bad, delayed_bad=actor_bad)
         return metrics | self.guard.metrics()
 
     def update_noise(self, b: Batch) -> tuple[torch.Tensor | None, torch.Tensor | None]:

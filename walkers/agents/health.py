@@ -20,6 +20,9 @@ class NonFiniteGuard:
     def __init__(self, device: torch.device, shape: tuple[int, ...] = ()):
         self.skipped = torch.zeros(shape, device=device)
         self.in_a_row = torch.zeros(shape, device=device)
+        #: a delayed step (TD3's actor, every d updates) that was skipped the last time it ran:
+        #: the updates in between, which do not run it, are no proof that it recovered
+        self.delayed_bad = torch.zeros(shape, device=device)
 
     @staticmethod
     def is_bad(*values: torch.Tensor) -> torch.Tensor:
@@ -37,7 +40,12 @@ class NonFiniteGuard:
             finite &= torch.isfinite(value)
         return (~finite).to(torch.float32)
 
-    def record(self, bad: torch.Tensor) -> None:
+    def record(self, bad: torch.Tensor, delayed_bad: torch.Tensor | None = None) -> None:
+        """Count one update: ``bad`` where its steps were skipped; ``delayed_bad`` where it ran
+        the delayed step, whether that step was skipped (it counts until the step runs again)."""
+        if delayed_bad is not None:
+            self.delayed_bad = delayed_bad
+        bad = torch.maximum(bad, self.delayed_bad)
         self.skipped += bad
         self.in_a_row = (self.in_a_row + bad) * bad  # reset by any good update
 
@@ -45,19 +53,23 @@ class NonFiniteGuard:
         """The counters themselves, not copies: read when logged, they are current."""
         return {SKIPPED: self.skipped, SKIPPED_IN_A_ROW: self.in_a_row}
 
+    _COUNTERS = ("skipped", "in_a_row", "delayed_bad")
+
     def state_dict(self) -> dict:
-        return {"skipped": self.skipped.tolist(), "in_a_row": self.in_a_row.tolist()}
+        return {name: getattr(self, name).tolist() for name in self._COUNTERS}
 
     def member_state_dict(self, i: int) -> dict:
         """Member ``i``'s counters, as a population of one's :meth:`state_dict`."""
-        return {"skipped": [self.skipped[i].item()], "in_a_row": [self.in_a_row[i].item()]}
+        return {name: [getattr(self, name)[i].item()] for name in self._COUNTERS}
 
     def load_member_state_dict(self, i: int, state: dict) -> None:
-        (self.skipped[i],), (self.in_a_row[i],) = state["skipped"], state["in_a_row"]
+        for name in self._COUNTERS:  # checkpoints from before delayed_bad: none was bad
+            (getattr(self, name)[i],) = state.get(name, [0.0])
 
     def load_state_dict(self, state: dict) -> None:
-        self.skipped.copy_(torch.as_tensor(state["skipped"]))
-        self.in_a_row.copy_(torch.as_tensor(state["in_a_row"]))
+        for name in self._COUNTERS:
+            counter = getattr(self, name)
+            counter.copy_(torch.as_tensor(state.get(name, torch.zeros_like(counter).tolist())))
 
 
 def guarded_step(
@@ -66,16 +78,19 @@ def guarded_step(
     copies: int,
     also_bad: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """Minimize the sum of per-member losses ``(K,)``, skipping members whose loss is NaN/inf.
+    """Minimize the sum of per-member losses ``(K,)``, skipping members whose loss or gradient
+    is NaN/inf (a finite loss can still have an infinite gradient).
 
     No host sync: a bad member's gradients are zeroed (NaN included), and fused Adam's
     ``found_inf`` skips the whole step when every member is bad (for a single agent: whenever
-    its loss is). ``copies``: parameter members per agent member (e.g. the critics per member);
+    it is). ``copies``: parameter members per agent member (e.g. the critics per member);
     ``also_bad``: members to skip for another reason. Returns the skipped members ``(K,)``.
     """
     optimizer.zero_grad(set_to_none=True)
     member_loss.sum().backward()
-    bad = NonFiniteGuard.bad_members(member_loss)
+    bad = torch.maximum(
+        NonFiniteGuard.bad_members(member_loss), bad_gradients(optimizer, member_loss.numel())
+    )
     if also_bad is not None:
         bad = torch.maximum(bad, also_bad)
     optimizer.found_inf = bad.min()
@@ -87,3 +102,16 @@ def guarded_step(
                     param.grad.masked_fill_(skip.view(-1, *(1,) * (param.dim() - 1)), 0.0)
     optimizer.step()
     return bad
+
+
+def bad_gradients(optimizer: torch.optim.Optimizer, members: int) -> torch.Tensor:
+    """Per member ``(members,)``: 1.0 where any of its gradients is NaN/inf. Every parameter's
+    leading dimension holds the members (each member's copies, e.g. its critics, together)."""
+    finite = torch.ones(
+        members, dtype=torch.bool, device=optimizer.param_groups[0]["params"][0].device
+    )
+    for group in optimizer.param_groups:
+        for param in group["params"]:
+            if param.grad is not None:
+                finite &= torch.isfinite(param.grad).reshape(members, -1).all(dim=1)
+    return (~finite).to(torch.float32)

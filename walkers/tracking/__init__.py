@@ -17,9 +17,10 @@ import logging
 import os
 import time
 import urllib.request
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from contextlib import contextmanager
 from pathlib import Path
+from urllib.parse import urlsplit, urlunsplit
 
 from mlflow.entities import Metric, Param, RunTag
 from mlflow.exceptions import MlflowException
@@ -37,6 +38,10 @@ os.environ.setdefault("MLFLOW_HTTP_REQUEST_BACKOFF_FACTOR", "1")
 os.environ.setdefault("MLFLOW_HTTP_REQUEST_TIMEOUT", "30")
 
 MLFLOW_MAX_PARAMS_PER_BATCH = 100
+#: How long a run that ends waits for a store that is down (restarting) to take its last
+#: metrics and its status, and how often it tries again.
+STORE_PATIENCE_S = float(os.environ.get("WALKERS_STORE_PATIENCE_S", 120))
+STORE_POLL_S = 3.0
 #: Statuses a run ends with.
 FINISHED, FAILED, KILLED = "FINISHED", "FAILED", "KILLED"
 #: Tag that marks runs which are not training runs (reports, sweep parents, datasets).
@@ -46,6 +51,8 @@ X_AXIS_TAG = "walkers.x_axis"
 ENV_STEPS, GRADIENT_STEPS = "env_steps", "gradient_steps"
 #: Tag of a run its pruner stopped early (a sweep trial; ``walkers.compare`` leaves it out).
 PRUNED_TAG = "walkers.pruned_at_step"
+#: Tag: what identifies a multirun job across attempts (``job_key``, set by walkers.train).
+JOB_KEY_TAG = "walkers.job_key"
 #: Tag: the last step whose metrics reached MLflow (a resumed run logs only steps after it).
 LOGGED_THROUGH_TAG = "walkers.logged_through"
 
@@ -99,6 +106,13 @@ def connect(uri: str) -> MlflowClient:
     A server is probed once, quickly, first: MLflow's own client retries a refused connection
     with backoff for minutes before it gives up.
     """
+    if urlsplit(uri).password is not None:
+        raise ConfigError(
+            f"tracking.uri={redacted_uri(uri)!r} carries a password, which would reach MLflow "
+            "params, Ray's logs and Hydra's files: leave it out of the URI and give it by "
+            "reference (MLFLOW_TRACKING_USERNAME / MLFLOW_TRACKING_PASSWORD for a server, "
+            "PGPASSWORD or ~/.pgpass for a PostgreSQL store)"
+        )
     try:
         if uri.startswith(("http://", "https://")):
             urllib.request.urlopen(f"{uri.rstrip('/')}/health", timeout=10).close()
@@ -110,6 +124,15 @@ def connect(uri: str) -> MlflowClient:
             "use sqlite:///<file>.db, http(s)://<server> or unset MLFLOW_TRACKING_URI"
         ) from None
     return client
+
+
+def redacted_uri(uri: str) -> str:
+    """``uri`` with the password of its user part, if any, shown as ``***``."""
+    parts = urlsplit(uri)
+    if parts.password is None:
+        return uri
+    host = parts.netloc.rpartition("@")[2]
+    return urlunsplit(parts._replace(netloc=f"{parts.username}:***@{host}"))
 
 
 def require_run(client: MlflowClient, run_id: str, uri: str, key: str = "run_id"):
@@ -130,6 +153,19 @@ def download_checkpoint(client: MlflowClient, run_id: str, filename: str, work_d
         return Path(client.download_artifacts(run_id, f"checkpoints/{filename}", str(dst)))
     except Exception:
         raise CheckpointError(f"run {run_id} has no checkpoints/{filename} artifact") from None
+
+
+def tags_equal(tags: Mapping[str, str]) -> str:
+    """An MLflow filter string: every tag in ``tags`` equal to its value. A value is quoted
+    with whichever quote it does not contain (MLflow's filter grammar has no escapes)."""
+    clauses = []
+    for key, value in tags.items():
+        value = str(value)
+        quote = "'" if "'" not in value else '"'
+        if quote in value:
+            raise ConfigError(f"{key}={value!r} cannot be searched in MLflow: it has both quotes")
+        clauses.append(f"tags.`{key}` = {quote}{value}{quote}")
+    return " and ".join(clauses)
 
 
 def search_runs(client: MlflowClient, experiment_id: str, filter_string: str = "") -> list:
@@ -164,11 +200,16 @@ def flatten(d: Mapping, prefix: str = "") -> dict[str, str]:
 
 
 @contextmanager
-def ending(trackers: list[Tracker]):
+def ending(trackers: list[Tracker], shared: Callable[[], bool] | None = None):
     """Every run in ``trackers`` (a list that may grow inside the block) gets its final status
     on the way out: FINISHED, KILLED (Ctrl-C, or SIGTERM turned into it) or FAILED (anything
     else). The one place a run's status is set, for training runs, populations, sweeps and
-    side runs alike."""
+    side runs alike.
+
+    ``shared``: for a run that other processes share (a study's run, one per study however many
+    sweepers run it): while it returns True on the way out, the runs are left RUNNING for the
+    last process out to end.
+    """
     status = FAILED
     try:
         yield
@@ -177,8 +218,13 @@ def ending(trackers: list[Tracker]):
         status = KILLED
         raise
     finally:
-        for tracker in trackers:
-            tracker.end(status)
+        if shared is not None and shared():
+            for tracker in trackers:
+                tracker.flush()
+                log.info("run %s stays RUNNING: others still work on it", tracker.run_id)
+        else:
+            for tracker in trackers:
+                tracker.end(status)
 
 
 @contextmanager
@@ -333,7 +379,10 @@ class Tracker:
             except Exception as e:
                 log.warning("system metrics monitor of run %s: %s", self.run_id, e)
             self._monitor = None
-        if not self.flush():
+        deadline = time.monotonic() + STORE_PATIENCE_S
+        while not self.flush() and time.monotonic() < deadline:  # a store that restarts
+            time.sleep(STORE_POLL_S)
+        if self._pending:
             spool = self.spool_dir / "unlogged_metrics.jsonl"
             spool.parent.mkdir(parents=True, exist_ok=True)
             with spool.open("a") as f:
@@ -341,7 +390,14 @@ class Tracker:
                     f.write(json.dumps({"key": m.key, "value": m.value, "step": m.step}) + "\n")
             log.error("%d metrics could not be logged; saved to %s", len(self._pending), spool)
         self.status = status
-        try:
-            _with_retries(self.client.set_terminated, self.run_id, status)
-        except Exception as e:
-            log.error("could not set MLflow run %s to %s: %s", self.run_id, status, e)
+        while True:  # a run left RUNNING is a lie: wait a while for a store that restarts
+            try:
+                _with_retries(self.client.set_terminated, self.run_id, status)
+                return
+            except Exception as e:
+                if time.monotonic() >= deadline:
+                    log.error("could not set MLflow run %s to %s: %s", self.run_id, status, e)
+                    return
+                log.warning("MLflow unreachable: run %s ends %s once it is back", self.run_id,
+                            status)  # fmt: skip
+                time.sleep(STORE_POLL_S)

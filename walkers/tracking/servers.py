@@ -61,10 +61,18 @@ class MlflowServer:
 
 
 def start_mlflow_server(
-    backend_uri: str, artifacts_dir: Path, port: int, host: str = "127.0.0.1", log_dir=None
+    backend_uri: str,
+    artifacts_dir: Path,
+    port: int,
+    host: str = "127.0.0.1",
+    log_dir=None,
+    workers: int | None = None,
 ) -> MlflowServer:
     """``mlflow server`` on ``backend_uri`` serving artifacts from ``artifacts_dir``; returns
-    once it answers ``/health`` (a first start migrates the database: ~10-20 s)."""
+    once it answers ``/health`` (a first start migrates the database: ~10-20 s).
+
+    ``workers``: its request-handling processes (None: MLflow's default, 4); a test on a small
+    machine runs one, which leaves the cores to the jobs and the cluster's control plane."""
     artifacts_dir = Path(artifacts_dir).resolve()
     log_path = Path(log_dir or artifacts_dir.parent) / f"mlflow-server-{port}.log"
     log_path.parent.mkdir(parents=True, exist_ok=True)
@@ -75,6 +83,7 @@ def start_mlflow_server(
         "--serve-artifacts",
         "--host", host,
         "--port", str(port),
+        *(["--workers", str(workers)] if workers else []),
     ]  # fmt: skip
     with log_path.open("ab") as log:
         process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT)

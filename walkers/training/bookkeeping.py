@@ -23,7 +23,14 @@ import torch
 from walkers.agents.base import Agent
 from walkers.agents.health import SKIPPED_IN_A_ROW
 from walkers.analysis.stats import run_summary
-from walkers.seeding import env_rng_state, eval_start_seeds, first_training_reset, restore_env_rng
+from walkers.seeding import (
+    env_rng_state,
+    eval_start_seeds,
+    first_training_reset,
+    restore_env_rng,
+    restore_torch_rng,
+    torch_rng_state,
+)
 from walkers.tracking import ENV_STEPS, GRADIENT_STEPS, Tracker
 from walkers.training import checkpoints
 from walkers.training.evaluation import Evaluation, greedy_evaluation
@@ -122,7 +129,7 @@ class RunBook:
         self.agent.load_state_dict(state["agent"])
         self.progress = Progress(**state["trainer"])
         self.last_checkpoint_step = self.progress.step
-        torch.set_rng_state(state["torch_rng"])
+        restore_torch_rng(state)
         self._env_rng = state.get("env_rng")
         mark = self.tracker.logged_through
         if mark is not None and mark > self.progress.step:
@@ -151,7 +158,7 @@ class RunBook:
         last = name == "last.pt"
         state = {
             "trainer": dataclasses.asdict(self.progress),
-            "torch_rng": torch.get_rng_state(),
+            **torch_rng_state(),
             "env_rng": env_rng_state(self.env) if self.env is not None else None,
             **self.checkpoint_extra,
         }
@@ -232,7 +239,7 @@ class RunBook:
             )
             raise TrainingDiverged(
                 f"training diverged at step {self.progress.step}: the last {int(in_a_row)} "
-                f"updates all had a NaN/inf loss ({losses}) and were skipped; {kept}"
+                f"updates all had a NaN/inf loss or gradient ({losses}) and were skipped; {kept}"
             )
 
     # --- evaluation ---------------------------------------------------------------------------

@@ -16,15 +16,19 @@ from omegaconf import DictConfig, OmegaConf
 
 from walkers import PROJECT_ROOT, tracking
 from walkers.training.bookkeeping import RESUME_DIR
-from walkers.training.resume import run_dir
+from walkers.training.resume import last_checkpoint, run_dir
 from walkers.tuning.studies import redacted
 
 log = logging.getLogger("walkers")
 
-#: Tag: what identifies a multirun job across attempts (``job_key``, set by walkers.train).
-JOB_KEY_TAG = "walkers.job_key"
+JOB_KEY_TAG = tracking.JOB_KEY_TAG
 #: Tag: the machine (and Ray node) that trains the run; a resumed run: the latest one.
 WORKER_TAG = "walkers.worker"
+#: Tags of a population member's run: the population's size, the member's place in it.
+POPULATION_TAG = "walkers.population"
+MEMBER_TAG = "walkers.population_member"
+#: Tag of an earlier attempt's run that a job run again could not continue (it is FAILED).
+SUPERSEDED_TAG = "walkers.superseded"
 
 
 def open_run(client, cfg: DictConfig, x_axis: str, data=None, extra_tags: dict | None = None):
@@ -92,6 +96,8 @@ def shareable(cfg: DictConfig) -> dict:
     for node in ("trial", "optuna"):
         if isinstance(data.get(node), dict) and data[node].get("storage"):
             data[node]["storage"] = redacted(data[node]["storage"])
+    if isinstance(data.get("tracking"), dict) and data["tracking"].get("uri"):
+        data["tracking"]["uri"] = tracking.redacted_uri(data["tracking"]["uri"])
     return data
 
 
@@ -113,20 +119,22 @@ def _start_system_metrics(tracker: tracking.Tracker, cfg: DictConfig) -> None:
 
 
 def continue_earlier_attempt(client, cfg: DictConfig) -> DictConfig:
-    """A job run again continues the run of its earlier attempt instead of starting a second.
+    """A job run again continues the run(s) of its earlier attempt instead of starting more.
 
     Ray runs a job again when its worker died (kill -9, ``ray stop`` on the node); a study runs
     a trial again when its sweeper died (``optuna.max_retry``). The earlier attempt's run, left
     RUNNING (or KILLED by SIGTERM), is found by the job's key (``job_key``) and resumed from its
-    last checkpoint, fetched from MLflow on whatever worker this is. Without a checkpoint there
-    is nothing to continue: it is marked FAILED and a new run starts.
+    last checkpoint, fetched from MLflow on whatever worker this is; a population's K member
+    runs are resumed together (``resume=[...]``). Without checkpoints to continue from (none
+    yet, or a population's members cut at different steps) the earlier runs are marked FAILED
+    and new ones start.
     """
-    if not cfg.job_key or cfg.population > 1:
+    if not cfg.job_key:
         return cfg
     experiment = client.get_experiment_by_name(cfg.tracking.experiment)
     if experiment is None:
         return cfg
-    query = f"tags.`{JOB_KEY_TAG}` = '{cfg.job_key}'"
+    query = tracking.tags_equal({JOB_KEY_TAG: cfg.job_key})
     earlier = [
         r
         for r in tracking.search_runs(client, experiment.experiment_id, query)
@@ -134,29 +142,52 @@ def continue_earlier_attempt(client, cfg: DictConfig) -> DictConfig:
     ]
     if not earlier:
         return cfg
-    run_id = earlier[0].info.run_id
-    uploaded = [a.path for a in client.list_artifacts(run_id, "checkpoints")]
-    local = run_dir(cfg.work_dir, run_id) / RESUME_DIR / "last.pt"
-    if "checkpoints/last.pt" not in uploaded and not local.is_file():
+    if cfg.population > 1:
+        by_member = {int(r.data.tags.get(MEMBER_TAG, -1)): r for r in earlier}
+        runs = [by_member.get(i) for i in range(cfg.population)]
+    else:
+        runs = earlier[:1]
+    problem = _why_not_continued(client, cfg, runs)
+    ids = [r.info.run_id for r in earlier if r is not None]
+    if problem:
         log.warning(
-            "job %s ran before as run %s, which ended without a checkpoint: marked FAILED; "
-            "starting a new run",
+            "job %s ran before as run(s) %s, %s: marked FAILED; starting anew",
             cfg.job_key,
-            run_id,
+            ", ".join(ids),
+            problem,
         )
-        tracker = tracking.Tracker.attach(client, run_id, Path(cfg.work_dir) / "spool")
-        tracker.set_tags({"walkers.superseded": "no checkpoint: the job ran again as a new run"})
-        tracker.end(tracking.FAILED)
+        for run_id in ids:
+            tracker = tracking.Tracker.attach(client, run_id, Path(cfg.work_dir) / "spool")
+            tracker.set_tags({SUPERSEDED_TAG: f"{problem}: the job ran again as new run(s)"})
+            tracker.end(tracking.FAILED)
         return cfg
     log.warning(
-        "job %s ran before as run %s (%s): continuing it from its last checkpoint",
+        "job %s ran before as run(s) %s (%s): continuing it from its last checkpoint",
         cfg.job_key,
-        run_id,
+        ", ".join(ids),
         earlier[0].info.status,
     )
     cfg = cfg.copy()
-    cfg.resume = run_id
+    cfg.resume = ids[0] if cfg.population == 1 else [r.info.run_id for r in runs]
     return cfg
+
+
+def _why_not_continued(client, cfg: DictConfig, runs: list) -> str | None:
+    """Why the earlier attempt's runs (one per member, None where missing) cannot go on."""
+    if any(r is None for r in runs):
+        return f"which are not the {cfg.population} members of a population"
+    steps = set()
+    for run in runs:
+        run_id = run.info.run_id
+        uploaded = [a.path for a in client.list_artifacts(run_id, "checkpoints")]
+        local = run_dir(cfg.work_dir, run_id) / RESUME_DIR / "last.pt"
+        if "checkpoints/last.pt" not in uploaded and not local.is_file():
+            return "which ended without a checkpoint"
+        if len(runs) > 1:  # members continue together only from one step
+            steps.add(last_checkpoint(client, run_id, cfg.work_dir)["trainer"]["step"])
+    if len(steps) > 1:
+        return f"whose members' checkpoints are at different steps {sorted(steps)}"
+    return None
 
 
 def prepare_run_dir(cfg: DictConfig, tracker: tracking.Tracker) -> Path:

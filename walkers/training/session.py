@@ -29,6 +29,8 @@ from walkers.training.envs import env_spaces, make_env
 from walkers.training.evaluation import per_target_return, with_normalized_score
 from walkers.training.loops import train_offline, train_online, train_population
 from walkers.training.runs import (
+    MEMBER_TAG,
+    POPULATION_TAG,
     continue_earlier_attempt,
     open_run,
     prepare_run_dir,
@@ -38,9 +40,6 @@ from walkers.training.validate import is_offline, validate
 from walkers.tuning.trial import TrialReporter
 
 log = logging.getLogger("walkers")
-
-POPULATION_TAG = "walkers.population"
-MEMBER_TAG = "walkers.population_member"
 
 
 def train(cfg: DictConfig, overrides: list[str] | tuple = ()) -> float:

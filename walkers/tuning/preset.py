@@ -21,6 +21,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from walkers import PROJECT_ROOT
 from walkers.errors import ConfigError
+from walkers.tuning.studies import redacted
 from walkers.tuning.sweeper import absolute_storage
 
 EXPERIMENT_DIR = PROJECT_ROOT / "conf" / "experiment"
@@ -31,13 +32,15 @@ def best_trial(storage: str, study_name: str) -> optuna.trial.FrozenTrial:
         study = optuna.load_study(study_name=study_name, storage=storage)
     except KeyError:
         raise ConfigError(
-            f"study {study_name!r} is not in {storage}; run the sweep first "
+            f"study {study_name!r} is not in {redacted(storage)}; run the sweep first "
             f"(python -m walkers.train -m sweeps={study_name})"
         ) from None
     try:
         return study.best_trial
     except ValueError:
-        raise ConfigError(f"study {study_name!r} in {storage} has no completed trial") from None
+        raise ConfigError(
+            f"study {study_name!r} in {redacted(storage)} has no completed trial"
+        ) from None
 
 
 def preset_yaml(name: str, sweep_cfg: DictConfig, trial, storage: str) -> str:
@@ -46,7 +49,8 @@ def preset_yaml(name: str, sweep_cfg: DictConfig, trial, storage: str) -> str:
     study, sweep = sweep_cfg.hydra.sweeper.study_name, choices.sweeps
     lines = [
         "# @package _global_",
-        f"# Tuned by the Optuna study {study!r} (sweeps/{sweep}.yaml, storage {storage}):",
+        f"# Tuned by the Optuna study {study!r} (sweeps/{sweep}.yaml, "
+        f"storage {redacted(storage)}):",
         f"# best trial {trial.number}: {sweep_cfg.optimized_metric} = {trial.value}.",
         f"#   python -m walkers.train experiment={name}",
         "defaults:",

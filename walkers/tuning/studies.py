@@ -8,25 +8,41 @@
   that sweepers running one study together stop at exactly ``n_trials`` (Optuna's own
   ``MaxTrialsCallback`` races there). A PostgreSQL advisory lock; a file lock beside a sqlite file.
 - :func:`counted_trials`: what ``n_trials`` counts: every trial but a failed one that was retried.
+- :func:`job_storage`: how a job is told the storage: a URL that carries a password never
+  travels by value (Hydra writes every job override to disk and prints it), only as a
+  reference to the environment variable that holds it.
 """
 
 from __future__ import annotations
 
 import fcntl
 import hashlib
+import logging
+import os
+import re
 import threading
+import time
 import uuid
 from contextlib import contextmanager
 from pathlib import Path
 
 import optuna
+from optuna.exceptions import StorageInternalError
 from optuna.storages import RDBStorage, RetryHeartbeatStaleTrialCallback
 from optuna.trial import FrozenTrial, TrialState
 from sqlalchemy.engine import make_url
+from sqlalchemy.exc import OperationalError
 
 from walkers.errors import ConfigError
 
+log = logging.getLogger("walkers")
+
 UID_ATTR = "walkers.study_uid"
+#: The environment variable that holds a shared storage's URL (``optuna=postgres`` reads it).
+#: On a cluster, every node has it in its environment (exported before ``ray start``).
+STORAGE_ENV = "WALKERS_OPTUNA_STORAGE"
+#: What a study may be called: it goes into overrides, MLflow queries, run names and paths.
+STUDY_NAME_CHARS = re.compile(r"[A-Za-z0-9_.:+@/ -]+")
 
 
 def open_storage(
@@ -38,6 +54,8 @@ def open_storage(
     try:
         return RDBStorage(
             url,
+            # a connection the database dropped (it restarted) is replaced, not used and failed
+            engine_kwargs={"pool_pre_ping": True},
             heartbeat_interval=heartbeat_interval or None,
             grace_period=grace_period if heartbeat_interval else None,
             heartbeat_stale_trial_callback=retry,
@@ -61,6 +79,59 @@ def redacted(url: str | None) -> str | None:
         return make_url(url).render_as_string(hide_password=True)
     except Exception:  # not a URL SQLAlchemy reads (e.g. "None"): nothing to hide
         return url
+
+
+def has_password(url: str | None) -> bool:
+    """Whether a storage URL carries a password (a secret that must not reach any file)."""
+    try:
+        return bool(url) and make_url(url).password is not None
+    except Exception:  # not a URL SQLAlchemy reads: nothing to hide
+        return False
+
+
+def check_passed_by_reference(url: str | None) -> None:
+    """A storage URL with a password must come from :data:`STORAGE_ENV`: given on the command
+    line or in a yaml file it would be written to every job's ``.hydra/*.yaml`` and printed."""
+    if has_password(url) and os.environ.get(STORAGE_ENV) != url:
+        raise ConfigError(
+            f"hydra.sweeper.storage={redacted(url)!r} carries a password, given by value: Hydra "
+            "would write it into every job's .hydra/ files and print it; pass it by reference: "
+            f"export {STORAGE_ENV}='<url>' and use optuna=postgres"
+        )
+
+
+def job_storage(url: str | None) -> str | None:
+    """The storage as a job's ``trial.storage`` override value: a URL without secrets as it is
+    (quoted), one with a password as a reference to :data:`STORAGE_ENV`, which the job resolves
+    from its own environment (Ray workers inherit their node's)."""
+    if url is None:
+        return None
+    if has_password(url):
+        check_passed_by_reference(url)
+        return hydra_quoted(f"${{oc.env:{STORAGE_ENV}}}")
+    return hydra_quoted(url)
+
+
+def hydra_quoted(value: str) -> str:
+    """``value`` as a single-quoted Hydra override value that parses back to ``value``.
+
+    Hydra's grammar: inside quotes a backslash escapes only a quote (or the backslashes just
+    before one, or at the end); ``${`` would start an interpolation in a value of ours.
+    """
+    if "${" in value and not value.startswith("${oc.env:"):
+        raise ConfigError(f"{value!r} is not allowed in an override value: it contains '${{'")
+    escaped = re.sub(r"(\\*)'", lambda m: m.group(1) * 2 + "\\'", value)
+    escaped = re.sub(r"(\\+)$", lambda m: m.group(1) * 2, escaped)
+    return f"'{escaped}'"
+
+
+def check_study_name(name: str) -> None:
+    """A study name that travels safely through overrides, MLflow queries and file names."""
+    if not STUDY_NAME_CHARS.fullmatch(name):
+        raise ConfigError(
+            f"hydra.sweeper.study_name={name!r} is not allowed: use letters, digits, spaces "
+            "and _ . : + @ / - (no quotes)"
+        )
 
 
 def study_uid(study: optuna.Study) -> str:
@@ -108,6 +179,25 @@ def study_lock(storage: RDBStorage, study_name: str):
                 fcntl.flock(f, fcntl.LOCK_UN)
     else:
         yield
+
+
+#: How long a sweeper waits for its study's database to come back (a restart) before giving up.
+STORE_PATIENCE_S = float(os.environ.get("WALKERS_STORE_PATIENCE_S", 120))
+
+
+def patiently(fn, *args, **kwargs):
+    """``fn(*args, **kwargs)``, tried again while the study's database cannot be reached (it
+    restarts), for up to :data:`STORE_PATIENCE_S` seconds; other errors are raised at once."""
+    deadline = time.monotonic() + STORE_PATIENCE_S
+    while True:
+        try:
+            return fn(*args, **kwargs)
+        except (OperationalError, StorageInternalError) as e:  # Optuna wraps some
+            if time.monotonic() >= deadline:
+                raise
+            log.warning("the study's database is unreachable, trying again: %s",
+                        str(e).splitlines()[0])  # fmt: skip
+            time.sleep(3)
 
 
 class Heartbeats:

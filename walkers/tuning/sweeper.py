@@ -64,9 +64,14 @@ from walkers.errors import ConfigError
 from walkers.metrics import MAXIMIZE, MINIMIZE, metric_direction
 from walkers.tuning.studies import (
     Heartbeats,
+    check_passed_by_reference,
+    check_study_name,
     counted_trials,
+    hydra_quoted,
+    job_storage,
     open_storage,
     original_number,
+    patiently,
     redacted,
     running,
     study_lock,
@@ -83,6 +88,8 @@ STUDY_TAG = "walkers.study"
 ORIGINAL_TRIAL_TAG = "walkers.original_trial"
 #: Study user attribute: the metric its trials are scored by (a resumed study must keep it).
 METRIC_ATTR = "walkers.optimized_metric"
+#: Run tag: why the sweeper ended a job's run that the job could not end itself.
+END_REASON_TAG = "walkers.end_reason"
 
 
 def absolute_storage(storage: str | None) -> str | None:
@@ -270,6 +277,9 @@ class PruningOptunaSweeper(OptunaSweeperImpl):
     def _check_settings(self) -> None:
         """What the command line may get wrong before any store is touched."""
         self.direction = sweep_direction(self.config.optimized_metric, self.direction)
+        if self.study_name is not None:
+            check_study_name(self.study_name)
+        check_passed_by_reference(self.storage)
         seeds = self.config.seeds_per_trial
         if not isinstance(seeds, int) or isinstance(seeds, bool) or seeds < 1:
             raise ConfigError(f"seeds_per_trial={seeds!r} is not allowed: an integer >= 1")
@@ -321,21 +331,25 @@ class PruningOptunaSweeper(OptunaSweeperImpl):
             )
 
     def _job_overrides(
-        self, study: optuna.Study, trial: optuna.Trial, parent_id: str | None, seed: int
+        self, study: optuna.Study, trial: optuna.Trial, parent_id: str | None, key: str, seed: int
     ) -> list[str]:
-        frozen = study._storage.get_trial(trial._trial_id)
         overrides = [
-            f"trial.study='{study.study_name}'",
-            f"trial.storage='{self.storage}'",
+            f"trial.study={hydra_quoted(study.study_name)}",
+            f"trial.storage={job_storage(self.storage) or 'null'}",  # a secret: by reference
             f"trial.id={trial._trial_id}",
             f"trial.number={trial.number}",
-            f"job_key='{self.uid}/trial{original_number(frozen)}/seed{seed}'",
+            f"job_key={hydra_quoted(key)}",
         ]
         if self.config.seeds_per_trial > 1:
             overrides.append(f"seed={seed}")
         if parent_id:
             overrides.append(f"trial.parent_run_id={parent_id}")
         return overrides
+
+    def job_key(self, trial: optuna.trial.FrozenTrial, seed: int) -> str:
+        """The key of a trial's job on one seed: the same for every attempt of it (a job Ray
+        runs again, a trial a study retries), so that it finds and continues its run."""
+        return f"{self.uid}/trial{original_number(trial)}/seed{seed}"
 
     # --- the loop -----------------------------------------------------------------------------
     def sweep(self, arguments: list[str]) -> None:
@@ -360,20 +374,24 @@ class PruningOptunaSweeper(OptunaSweeperImpl):
             parent = open_parent_run(client, self.config, study, self.storage)  # one for all
         settings = self.config.optuna
         poll = min(5, settings.heartbeat_interval or 5)
+        self.client = client
         with (
-            tracking.ending([parent] if parent is not None else []),
+            # one run for all the study's sweepers: the last one out ends it
+            tracking.ending(
+                [parent] if parent is not None else [], lambda: bool(patiently(running, study))
+            ),
             Heartbeats(self.rdb, settings.heartbeat_interval if self.rdb else None) as beats,
         ):
             while True:
-                if trials := self._claim(study, beats):
-                    if trials := self._without_decided(study, trials, beats):
+                if trials := patiently(self._claim, study, beats):
+                    if trials := patiently(self._without_decided, study, trials, beats):
                         self._run_batch(study, trials, space, fixed, fixed_overrides, parent, beats)
-                elif others := running(study):  # another sweeper's: wait, retry if it died
+                elif others := patiently(running, study):  # another sweeper's: wait, retry
                     log.info("waiting for %d trials of other sweepers on the study", len(others))
                     time.sleep(poll)
                 else:
                     break
-            self._report(study, fixed, parent)
+            patiently(self._report, study, fixed, parent)
 
     @staticmethod
     def _without_decided(study, trials, beats) -> list[optuna.Trial]:
@@ -399,7 +417,7 @@ class PruningOptunaSweeper(OptunaSweeperImpl):
         seeds = [self.config.seed + i for i in range(self.config.seeds_per_trial)]
         trial_runs: list[tracking.Tracker | None] = []  # per trial (None: one seed, no run)
         opened: list[tracking.Tracker] = []
-        jobs = []
+        jobs, keys = [], []  # keys: each job's, to end its runs if the launch fails
         with tracking.ending(opened):  # a list that grows: every trial run opened is ended
             try:
                 for trial in trials:
@@ -409,20 +427,24 @@ class PruningOptunaSweeper(OptunaSweeperImpl):
                 params = self._configure_trials(trials, space, fixed, fixed_overrides)
                 for trial, job, trial_run in zip(trials, params, trial_runs, strict=True):
                     nest_under = (trial_run or parent) and (trial_run or parent).run_id
+                    frozen = study._storage.get_trial(trial._trial_id)
                     for seed in seeds:
-                        jobs.append((*job, *self._job_overrides(study, trial, nest_under, seed)))
+                        keys.append(self.job_key(frozen, seed))
+                        overrides = self._job_overrides(study, trial, nest_under, keys[-1], seed)
+                        jobs.append((*job, *overrides))
                 returns = self.launcher.launch(jobs, initial_job_idx=self.job_idx)
-            except BaseException:
+            except BaseException as e:
                 for trial in trials:
                     log.warning("trial %d did not finish: FAIL", trial.number)
                     study.tell(trial, state=TrialState.FAIL, skip_if_finished=True)
                     beats.remove(trial._trial_id)
+                end_jobs_runs(self.client, self.config.tracking.experiment, keys, e)
                 raise
             self.job_idx += len(returns)
             failures = []
             for i, trial in enumerate(trials):
                 results = returns[i * len(seeds) : (i + 1) * len(seeds)]
-                failures.append(record_outcome(study, trial, results))
+                failures.append(patiently(record_outcome, study, trial, results))
                 beats.remove(trial._trial_id)
             for trial, trial_run in zip(trials, trial_runs, strict=True):  # all told first
                 if trial_run is not None:
@@ -462,6 +484,31 @@ class PruningOptunaSweeper(OptunaSweeperImpl):
             log_best(parent, study, best, path)
 
 
+def end_jobs_runs(client, experiment: str, job_keys: list[str], error: BaseException) -> None:
+    """A batch whose launcher failed (a job's retries ran out on a cluster, Ctrl-C of the
+    sweeper): its jobs still out there are stopped (a Ray driver's tasks end with it) and their
+    runs left RUNNING are ended, KILLED after Ctrl-C, else FAILED, with the reason as a tag."""
+    if "ray" in sys.modules:
+        import ray
+
+        if ray.is_initialized():
+            ray.shutdown()  # the batch's other tasks are stopped before their runs are ended
+    status = tracking.KILLED if isinstance(error, KeyboardInterrupt) else tracking.FAILED
+    reason = f"its batch's launch ended: {type(error).__name__}: {error}"[:500]
+    try:
+        experiment_id = tracking.get_or_create_experiment(client, experiment)
+        for key in job_keys:
+            query = tracking.tags_equal({tracking.JOB_KEY_TAG: key})
+            for run in tracking.search_runs(client, experiment_id, query):
+                if run.info.status == "RUNNING":
+                    log.warning("run %s of job %s left RUNNING: %s", run.info.run_id, key, status)
+                    tracker = tracking.Tracker.attach(client, run.info.run_id, ".")
+                    tracker.set_tags({END_REASON_TAG: reason})
+                    tracker.end(status)
+    except Exception as e:  # the launcher's error is the one to report
+        log.error("could not end the runs of the failed batch: %s", e)
+
+
 def log_best(
     parent: tracking.Tracker, study: optuna.Study, best: optuna.trial.FrozenTrial, results: Path
 ) -> None:
@@ -499,9 +546,8 @@ def open_trial_run(
     name = f"{study.study_name}-trial{trial.number}"
     if original == trial.number:  # a first attempt: a run of its own
         return tracking.Tracker.start(parent.client, experiment, name, tags, parent.spool_dir)
-    query = (  # a retry: the run of the trial it repeats
-        f"tags.`{tracking.KIND_TAG}` = 'trial' and tags.`{STUDY_TAG}` = '{study.study_name}'"
-        f" and tags.`{ORIGINAL_TRIAL_TAG}` = '{original}'"
+    query = tracking.tags_equal(  # a retry: the run of the trial it repeats
+        {tracking.KIND_TAG: "trial", STUDY_TAG: study.study_name, ORIGINAL_TRIAL_TAG: original}
     )
     return tracking.Tracker.reopen_or_start(
         parent.client, experiment, query, name, tags, parent.spool_dir
@@ -530,7 +576,7 @@ def open_parent_run(
         "walkers.optimized_metric": config.optimized_metric,
         "walkers.direction": study.direction.name.lower(),
     }
-    query = f"tags.`{tracking.KIND_TAG}` = 'study' and tags.`{STUDY_TAG}` = '{study.study_name}'"
+    query = tracking.tags_equal({tracking.KIND_TAG: "study", STUDY_TAG: study.study_name})
     return tracking.Tracker.reopen_or_start(
         client,
         config.tracking.experiment,

@@ -18,7 +18,13 @@ import math
 import optuna
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import InterpolationResolutionError
+from optuna.exceptions import StorageInternalError
 from optuna.study import StudyDirection
+from sqlalchemy.exc import SQLAlchemyError
+
+from walkers.errors import ConfigError
+from walkers.tuning.studies import STORAGE_ENV, open_storage
 
 log = logging.getLogger("walkers")
 
@@ -41,6 +47,18 @@ def make_pruner(pruner_cfg: DictConfig | None, maximize: bool = True) -> optuna.
     return instantiate(kwargs, _execution_whitelist_=PRUNER_TARGETS)
 
 
+def _storage(trial_cfg: DictConfig) -> str:
+    """The study's storage URL; one with a password arrives as a reference to this machine's
+    environment (:func:`walkers.tuning.studies.job_storage`)."""
+    try:
+        return trial_cfg.storage
+    except InterpolationResolutionError:
+        raise ConfigError(
+            f"trial.storage is {STORAGE_ENV}, which this machine's environment does not have: "
+            f"export {STORAGE_ENV} on every node (before `ray start`) as on the sweeper's"
+        ) from None
+
+
 class TrialReporter:
     """``reporter(step, eval_return) -> True`` when the trial should stop (it was pruned).
 
@@ -54,7 +72,8 @@ class TrialReporter:
     def __init__(
         self, trial_cfg: DictConfig, pruner_cfg: DictConfig | None, seed: int = 0, seeds: int = 1
     ):
-        study = optuna.load_study(study_name=trial_cfg.study, storage=trial_cfg.storage)
+        storage = open_storage(_storage(trial_cfg), None, None, None)
+        study = optuna.load_study(study_name=trial_cfg.study, storage=storage)
         maximize = study.direction == StudyDirection.MAXIMIZE
         study.pruner = make_pruner(pruner_cfg, maximize)
         #: +1, or -1 in a minimizing study: the sign of the eval return as the pruner sees it
@@ -64,11 +83,17 @@ class TrialReporter:
         self.pruned_at: int | None = None
 
     def __call__(self, step: int, value: float) -> bool:
-        if self.seeds > 1:
-            return self._seed_evaluation(step, value)
-        if not math.isfinite(value):  # a diverged policy: nothing to compare; let it run out
+        try:
+            if self.seeds > 1:
+                return self._seed_evaluation(step, value)
+            if not math.isfinite(value):  # a diverged policy: nothing to compare; let it run out
+                return False
+            return self._report(step, value)
+        except (SQLAlchemyError, StorageInternalError) as e:  # the study's database is down
+            # (restarting): train on; the pruner misses this evaluation
+            log.warning("evaluation at step %d not reported to the study: %s", step,
+                        str(e).splitlines()[0])  # fmt: skip
             return False
-        return self._report(step, value)
 
     def _report(self, step: int, value: float) -> bool:
         self.trial.report(self.sign * value, step)

@@ -17,7 +17,7 @@ from walkers.analysis.comparison import (
     published_figures,
 )
 from walkers.analysis.report import PUBLISHED_CAVEAT, markdown
-from walkers.compare import group_by_as_list
+from walkers.cli import group_by_as_list
 
 TD3 = {
     "algo._target_": "walkers.agents.td3.TD3",

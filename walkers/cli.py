@@ -138,3 +138,14 @@ def or_exit(command, cfg):
     except (ConfigError, CheckpointError) as e:
         print(f"error: {e}", file=sys.stderr)
         sys.exit(2)
+
+
+def group_by_as_list(args: list[str]) -> list[str]:
+    """``group_by=a,b`` -> ``group_by=[a,b]``: Hydra reads a bare comma list as a sweep, which
+    means nothing to a report; quoted or bracketed values pass as they are."""
+    return [
+        f"group_by=[{arg.partition('=')[2]}]"
+        if arg.startswith("group_by=") and "," in arg and arg[9:10] not in ("[", "'", '"')
+        else arg
+        for arg in args
+    ]

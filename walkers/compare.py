@@ -17,7 +17,7 @@ from omegaconf import DictConfig
 from walkers import CONF_DIR
 from walkers.analysis.comparison import compare
 from walkers.analysis.report import verdict
-from walkers.cli import exit_on_bad_overrides, or_exit
+from walkers.cli import exit_on_bad_overrides, group_by_as_list, or_exit
 
 
 @hydra.main(config_path=str(CONF_DIR), config_name="compare")
@@ -27,17 +27,6 @@ def main(cfg: DictConfig) -> None:
     print(f"report: {out / 'report.md'}")
     if url:
         print(f"MLflow: `make ui`, then {url}")
-
-
-def group_by_as_list(args: list[str]) -> list[str]:
-    """``group_by=a,b`` -> ``group_by=[a,b]``: Hydra reads a bare comma list as a sweep, which
-    means nothing to a report; quoted or bracketed values pass as they are."""
-    return [
-        f"group_by=[{arg.partition('=')[2]}]"
-        if arg.startswith("group_by=") and "," in arg and arg[9:10] not in ("[", "'", '"')
-        else arg
-        for arg in args
-    ]
 
 
 if __name__ == "__main__":

@@ -32,6 +32,7 @@ from omegaconf import DictConfig
 from walkers import tracking
 from walkers.analysis import stats
 from walkers.analysis.arms import Arm, build_arms, parse_group_by, unknown_key_hint
+from walkers.analysis.power import PairPower, pair_power
 from walkers.analysis.report import AXIS_NAMES, PUBLISHED_CAVEAT, verdict, write_report
 from walkers.errors import ConfigError
 from walkers.tracking import ENV_STEPS, GRADIENT_STEPS, KIND_TAG
@@ -131,11 +132,15 @@ class PairResult:
     quantity: str
     p_improvement: tuple[float, float, float]
     p_value: float
+    power: PairPower | None = None  # the difference, its size, the power to see it, seeds
 
     def flipped(self) -> PairResult:
         """B vs A: P(B > A) = 1 - P(A > B), the interval mirrored; the p-value is symmetric."""
         p, low, high = self.p_improvement
-        return PairResult(self.b, self.a, self.quantity, (1 - p, 1 - high, 1 - low), self.p_value)
+        power = self.power.flipped() if self.power is not None else None
+        return PairResult(
+            self.b, self.a, self.quantity, (1 - p, 1 - high, 1 - low), self.p_value, power
+        )
 
     def decisive(self, confidence: float) -> int:
         """+1 if A is reliably better, -1 if B is, 0 if the data can't tell."""
@@ -179,6 +184,7 @@ class Comparison:
                     "p_improvement_high": _finite_or_none(p.p_improvement[2]),
                     "mann_whitney_p": p.p_value,
                     "verdict": p.decisive(self.confidence),
+                    "power": p.power.__dict__ if p.power is not None else None,
                 }
                 for p in self.pairs
             ],
@@ -319,9 +325,13 @@ def compare_groups(
     n_resamples: int = 5000,
     seed: int = 0,
     arms: dict[str, Arm] | None = None,
+    smallest_effect: float = 0.1,
+    smallest_effect_abs: float | None = None,
 ) -> Comparison:
     """Per-arm summaries and every pairwise comparison, in ``order`` (arm names, the keys of
-    ``grouped``; ``arms`` describes them)."""
+    ``grouped``; ``arms`` describes them). Each pair's power is judged against the smallest
+    difference worth detecting: ``smallest_effect_abs`` in the quantity's units, else
+    ``smallest_effect`` times the larger of the two arms' absolute means."""
     boot = {"confidence": confidence, "n_resamples": n_resamples, "seed": seed}
     results = []
     for name in order:
@@ -344,6 +354,9 @@ def compare_groups(
         if a.x_axis == b.x_axis:  # a rate of learning only compares on the same x-axis
             quantities.append(("auc", a.auc, b.auc))
         for quantity, xa, xb in quantities:
+            smallest = smallest_effect_abs or smallest_effect * max(
+                abs(np.mean(xa)), abs(np.mean(xb))
+            )
             pairs.append(
                 PairResult(
                     a.algo,
@@ -351,6 +364,7 @@ def compare_groups(
                     quantity,
                     stats.poi_ci(xa, xb, **boot),
                     stats.mann_whitney_p(xa, xb),
+                    pair_power(xa, xb, 1 - confidence, smallest),
                 )
             )
     grids = {}
@@ -394,6 +408,17 @@ def _check_group_by(group_by: list[str], runs: list, experiment: str) -> None:
 
 def compare(cfg: DictConfig) -> tuple[Comparison, Path, str | None]:
     """Build the comparison ``cfg`` asks for, write the report; returns it, its dir, a UI link."""
+    comparison, client = build_comparison(cfg)
+    out = Path(cfg.out)
+    files = write_report(
+        comparison, out, source=f"{cfg.tracking.uri}, experiment {cfg.tracking.experiment!r}"
+    )
+    url = _log_report(client, cfg, comparison, files) if cfg.log_report else None
+    return comparison, out, url
+
+
+def build_comparison(cfg: DictConfig):
+    """The comparison ``cfg`` asks for (arms as the report forms them), and the store's client."""
     _check(cfg)
     client = tracking.connect(cfg.tracking.uri)
     experiment = client.get_experiment_by_name(cfg.tracking.experiment)
@@ -442,17 +467,14 @@ def compare(cfg: DictConfig) -> tuple[Comparison, Path, str | None]:
         n_resamples=cfg.n_resamples,
         seed=cfg.seed,
         arms={arm.name: arm for arm in arms},
+        smallest_effect=cfg.smallest_effect,
+        smallest_effect_abs=cfg.smallest_effect_abs,
     )
     comparison.left_out = notes
     comparison.group_by = group_by
     comparison.splits = splits
     comparison.published = published_figures(cfg.env, list(dict.fromkeys(a.algo for a in arms)))
-    out = Path(cfg.out)
-    files = write_report(
-        comparison, out, source=f"{cfg.tracking.uri}, experiment {cfg.tracking.experiment!r}"
-    )
-    url = _log_report(client, cfg, comparison, files) if cfg.log_report else None
-    return comparison, out, url
+    return comparison, client
 
 
 #: MLflow's limits on a run name and a tag value.

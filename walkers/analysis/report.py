@@ -20,6 +20,7 @@ matplotlib.use("Agg")  # files only, never a window
 import matplotlib.pyplot as plt  # noqa: E402
 
 from walkers.analysis import arms, stats  # noqa: E402
+from walkers.analysis.power import MAX_SEEDS, TARGET  # noqa: E402
 from walkers.tracking import ENV_STEPS, GRADIENT_STEPS  # noqa: E402
 
 if TYPE_CHECKING:
@@ -77,10 +78,32 @@ def _clause(pair: PairResult, confidence: float) -> str:
         f"P({pair.a} > {pair.b}) = {_interval(*pair.p_improvement)}, "
         f"Mann-Whitney p = {pair.p_value:.2g}"
     )
+    power = pair.power
+    if power is not None:
+        evidence += (
+            f", difference {power.difference:+.3g} (Hedges' g {power.effect_size:+.2f}), "
+            f"power {power.power:.0%}"
+        )
     if pair.decisive(confidence) > 0:
         word = "learns better" if pair.quantity == "score" else "learns faster"
         return f"{pair.a} {word} ({name}: {evidence})"
-    return f"no reliable difference in {name} ({evidence})"
+    clause = f"no reliable difference in {name} ({evidence})"
+    if power is None:
+        return clause
+    if power.precise():
+        return (
+            f"{clause}: a small effect measured precisely (the study had "
+            f"{power.power_for_smallest:.0%} power to detect a difference of {power.smallest:.3g})"
+        )
+    settle = (
+        f"{power.seeds} seeds per arm would detect the observed difference with "
+        f"{TARGET:.0%} power" if power.seeds is not None else
+        f"not even {MAX_SEEDS} seeds per arm would detect the observed difference"
+    )  # fmt: skip
+    return (
+        f"{clause}: underpowered, not equal (only {power.power_for_smallest:.0%} power to detect "
+        f"a difference of {power.smallest:.3g}); {settle} ({power.method})"
+    )
 
 
 def verdict(c: Comparison) -> str:
@@ -319,14 +342,32 @@ def markdown(c: Comparison, source: str) -> str:
         "",
         "## Pairwise",
         "",
-        f"| A vs B | on | P(A > B) [{level} CI] | Mann-Whitney p |",
-        "|---|---|---|---|",
+        f"| A vs B | on | P(A > B) [{level} CI] | Mann-Whitney p | mean A - B (Hedges' g) "
+        f"| power | seeds per arm for {TARGET:.0%} power | power for the smallest effect |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for p in c.pairs:
+        w = p.power
+        powers = (
+            f"{_num(w.difference)} ({w.effect_size:+.2f}) | {w.power:.0%} "
+            f"| {w.seeds if w.seeds is not None else f'> {MAX_SEEDS}'} "
+            f"| {w.power_for_smallest:.0%} (difference {_num(w.smallest)})"
+            if w is not None
+            else "- | - | - | -"
+        )
         out.append(
             f"| {p.a} vs {p.b} | {QUANTITY_NAMES[p.quantity]} | {_interval(*p.p_improvement)} "
-            f"| {p.p_value:.3g} |"
+            f"| {p.p_value:.3g} | {powers} |"
         )
+    methods = sorted({p.power.method for p in c.pairs if p.power is not None})
+    if methods:
+        out += [
+            "",
+            f"Power (at alpha {1 - c.confidence:.2g}, for the report's Mann-Whitney test) by "
+            f"{' and '.join(methods)}: the closed form where both arms' returns look normal, "
+            "else studies resampled from the runs themselves (walkers/analysis/power.py). "
+            "`python -m walkers.plan` plans a study from these runs.",
+        ]
     for r in c.algos:
         if r.normalized_score_mean is not None:
             out += [

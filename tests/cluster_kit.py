@@ -130,6 +130,9 @@ def start_stack(folder: Path) -> Stack:
         postgres=server,
     )
     assert stack.optuna_url != admin, admin
+    # Optuna's tables, created now by their owner: created by whoever reads a study first (the
+    # superuser, to check a fault's outcome), they would refuse the owner
+    optuna.storages.RDBStorage(stack.optuna_url).engine.dispose()
     stack.start_mlflow()
     return stack
 
@@ -430,6 +433,7 @@ FAULTS: dict[str, Fault] = {
         kill_a_job, ("hydra.launcher.ray.remote.max_retries=0",), sweep_succeeds=False
     ),
     "Ctrl-C of the driver": Fault(interrupt_the_sweeper, sweep_succeeds=False),
+    "Ctrl-C of a plain multirun": Fault(interrupt_the_sweeper, sweep_succeeds=False, study=False),
 }
 
 

@@ -80,6 +80,9 @@ def main(cfg: DictConfig) -> float:
 
 
 if __name__ == "__main__":
+    # SIGTERM ends a multirun's driver like Ctrl-C: its sweeper and Hydra callbacks end what it
+    # started (its trials, its jobs' runs) instead of dying in place
+    signal.signal(signal.SIGTERM, _raise_keyboard_interrupt)
     sys.argv[1:] = renamed_overrides(sys.argv[1:])
     exit_on_bad_overrides("train")
     main()

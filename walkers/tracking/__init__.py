@@ -51,6 +51,8 @@ X_AXIS_TAG = "walkers.x_axis"
 ENV_STEPS, GRADIENT_STEPS = "env_steps", "gradient_steps"
 #: Tag of a run its pruner stopped early (a sweep trial; ``walkers.compare`` leaves it out).
 PRUNED_TAG = "walkers.pruned_at_step"
+#: Tag: why a run was ended by someone else than its job (its driver or sweeper, on the way out).
+END_REASON_TAG = "walkers.end_reason"
 #: Tag: what identifies a multirun job across attempts (``job_key``, set by walkers.train).
 JOB_KEY_TAG = "walkers.job_key"
 #: Tag: the last step whose metrics reached MLflow (a resumed run logs only steps after it).
@@ -155,17 +157,33 @@ def download_checkpoint(client: MlflowClient, run_id: str, filename: str, work_d
         raise CheckpointError(f"run {run_id} has no checkpoints/{filename} artifact") from None
 
 
+def quoted(value: str) -> str:
+    """``value`` as a string literal of an MLflow filter, in whichever quote it does not
+    contain (MLflow's filter grammar has no escapes)."""
+    quote = "'" if "'" not in value else '"'
+    if quote in value:
+        raise ConfigError(f"{value!r} cannot be searched in MLflow: it has both quotes")
+    return f"{quote}{value}{quote}"
+
+
 def tags_equal(tags: Mapping[str, str]) -> str:
-    """An MLflow filter string: every tag in ``tags`` equal to its value. A value is quoted
-    with whichever quote it does not contain (MLflow's filter grammar has no escapes)."""
-    clauses = []
-    for key, value in tags.items():
-        value = str(value)
-        quote = "'" if "'" not in value else '"'
-        if quote in value:
-            raise ConfigError(f"{key}={value!r} cannot be searched in MLflow: it has both quotes")
-        clauses.append(f"tags.`{key}` = {quote}{value}{quote}")
-    return " and ".join(clauses)
+    """An MLflow filter string: every tag in ``tags`` equal to its value."""
+    return " and ".join(f"tags.`{key}` = {quoted(str(value))}" for key, value in tags.items())
+
+
+def end_running(client: MlflowClient, experiment: str, query: str, status: str, reason: str):
+    """End the runs of ``experiment`` matching ``query`` that are still RUNNING, with ``status``
+    and ``reason`` (tag ``walkers.end_reason``): the runs of jobs that died with their driver,
+    which cannot end them themselves. Returns their ids."""
+    found = client.get_experiment_by_name(experiment)
+    ended = []
+    for run in search_runs(client, found.experiment_id, query) if found else []:
+        if run.info.status == "RUNNING":
+            tracker = Tracker.attach(client, run.info.run_id, ".")
+            tracker.set_tags({END_REASON_TAG: reason[:500]})
+            tracker.end(status)
+            ended.append(run.info.run_id)
+    return ended
 
 
 def search_runs(client: MlflowClient, experiment_id: str, filter_string: str = "") -> list:

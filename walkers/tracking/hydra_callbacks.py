@@ -18,10 +18,15 @@ log = logging.getLogger("walkers")
 
 
 class PrepareTrackingStore(Callback):
-    """Create the MLflow store and experiment once, before a multirun's jobs start.
+    """Create the MLflow store and experiment once, before a multirun's jobs start; end the runs
+    its jobs leave behind if the multirun itself dies.
 
     Jobs launched in parallel on a fresh sqlite store otherwise race on its schema creation
-    ("duplicate column name") and on creating the experiment ("database is locked").
+    ("duplicate column name") and on creating the experiment ("database is locked"). A driver
+    stopped by Ctrl-C (or SIGTERM) or by a launcher error takes its Ray jobs with it: on its way
+    out, the runs of this multirun's jobs (job keys ``<sweep dir>#<n>``) still RUNNING are ended
+    (KILLED after Ctrl-C, else FAILED). A sweep's sweeper does the same for its own jobs, and
+    tells their trials.
     """
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
@@ -35,6 +40,34 @@ class PrepareTrackingStore(Callback):
             tracking.get_or_create_experiment(client, config.tracking.experiment)
         except Exception as e:  # each job reports a bad store itself, as a one-line error
             log.warning("could not prepare the MLflow store before the jobs: %s", e)
+
+    def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
+        """Called on every way out of a multirun; ``sys.exc_info()`` holds what stopped it."""
+        error = sys.exc_info()[1]
+        if error is None or isinstance(error, SystemExit):
+            return  # every job returned (each ended its own runs), or bad input started none
+        stop_remote_jobs()
+        status = tracking.KILLED if isinstance(error, KeyboardInterrupt) else tracking.FAILED
+        try:
+            client = tracking.connect(config.tracking.uri)
+            key = tracking.quoted(f"{config.hydra.sweep.dir}#%")  # this multirun's jobs
+            query = f"tags.`{tracking.JOB_KEY_TAG}` LIKE {key}"
+            reason = f"its multirun stopped before the job ended: {type(error).__name__}"
+            experiment = config.tracking.experiment
+            for run_id in tracking.end_running(client, experiment, query, status, reason):
+                log.warning("run %s of this multirun was left RUNNING: %s", run_id, status)
+        except Exception as e:  # on the way out: say it, never mask why the multirun stopped
+            log.error("could not end the runs of this multirun's jobs: %s", e)
+
+
+def stop_remote_jobs() -> None:
+    """Stop the jobs this process launched on a Ray cluster (its tasks end with the driver),
+    so that no run is ended while its job still trains."""
+    if "ray" in sys.modules:
+        import ray
+
+        if ray.is_initialized():
+            ray.shutdown()
 
 
 def check_ray_cluster(launcher: DictConfig) -> None:

@@ -62,6 +62,7 @@ from optuna.trial import TrialState
 from walkers import tracking
 from walkers.errors import ConfigError
 from walkers.metrics import MAXIMIZE, MINIMIZE, metric_direction
+from walkers.tracking.hydra_callbacks import stop_remote_jobs
 from walkers.tuning.studies import (
     Heartbeats,
     check_passed_by_reference,
@@ -88,8 +89,6 @@ STUDY_TAG = "walkers.study"
 ORIGINAL_TRIAL_TAG = "walkers.original_trial"
 #: Study user attribute: the metric its trials are scored by (a resumed study must keep it).
 METRIC_ATTR = "walkers.optimized_metric"
-#: Run tag: why the sweeper ended a job's run that the job could not end itself.
-END_REASON_TAG = "walkers.end_reason"
 
 
 def absolute_storage(storage: str | None) -> str | None:
@@ -488,23 +487,14 @@ def end_jobs_runs(client, experiment: str, job_keys: list[str], error: BaseExcep
     """A batch whose launcher failed (a job's retries ran out on a cluster, Ctrl-C of the
     sweeper): its jobs still out there are stopped (a Ray driver's tasks end with it) and their
     runs left RUNNING are ended, KILLED after Ctrl-C, else FAILED, with the reason as a tag."""
-    if "ray" in sys.modules:
-        import ray
-
-        if ray.is_initialized():
-            ray.shutdown()  # the batch's other tasks are stopped before their runs are ended
+    stop_remote_jobs()
     status = tracking.KILLED if isinstance(error, KeyboardInterrupt) else tracking.FAILED
-    reason = f"its batch's launch ended: {type(error).__name__}: {error}"[:500]
+    reason = f"its batch's launch ended: {type(error).__name__}: {error}"
     try:
-        experiment_id = tracking.get_or_create_experiment(client, experiment)
         for key in job_keys:
             query = tracking.tags_equal({tracking.JOB_KEY_TAG: key})
-            for run in tracking.search_runs(client, experiment_id, query):
-                if run.info.status == "RUNNING":
-                    log.warning("run %s of job %s left RUNNING: %s", run.info.run_id, key, status)
-                    tracker = tracking.Tracker.attach(client, run.info.run_id, ".")
-                    tracker.set_tags({END_REASON_TAG: reason})
-                    tracker.end(status)
+            for run_id in tracking.end_running(client, experiment, query, status, reason):
+                log.warning("run %s of job %s was left RUNNING: %s", run_id, key, status)
     except Exception as e:  # the launcher's error is the one to report
         log.error("could not end the runs of the failed batch: %s", e)
 

@@ -40,6 +40,9 @@ offline: $(STAMP)  ## offline RL end to end in minutes: TD3 on Pendulum -> Minar
 compare: $(STAMP)  ## A/B report from finished runs (ARGS="env=walker2d algos=[reinforce,td3] tracking.experiment=...")
 	$(PY) -m walkers.compare $(ARGS)
 
+plan: $(STAMP)  ## how many seeds a study needs, from pilot runs (ARGS="env=pendulum algos=[reinforce,td3] tracking.experiment=ab_pendulum relative=0.1")
+	$(PY) -m walkers.plan $(ARGS)
+
 test: $(STAMP)  ## run the test suite (real tiny trainings, sweeps, offline RL, reports; one worker per core)
 	$(PY) -m pytest -q -n auto --dist loadscope --durations=10 -m "not cluster" $(ARGS)
 
@@ -77,4 +80,4 @@ clean:  ## remove run outputs (mlflow.db, mlartifacts/, outputs/, multirun/, .wa
 	rm -rf mlflow.db mlruns mlartifacts outputs multirun .walkers reports .pytest_cache .ruff_cache
 	find . -name __pycache__ -type d -prune -not -path './$(VENV)/*' -exec rm -rf {} +
 
-.PHONY: help install train ab ab-all offline compare test test-cluster chaos stack bench bench-throughput bench-learning bench-scale lint ui clean
+.PHONY: help install train ab ab-all offline compare plan test test-cluster chaos stack bench bench-throughput bench-learning bench-scale lint ui clean

@@ -64,7 +64,7 @@ def make_plan(cfg: DictConfig) -> str:
             f"method: {p.method}: {p.why}",
             "",
             "| power | seeds per arm | env steps | CPU-hours | "
-            + " | ".join(f"wall on {n} workers" for n in cfg.workers)
+            + " | ".join(f"wall on {n} worker{'s' * (n > 1)}" for n in cfg.workers)
             + " |",
             "|---" * (4 + len(cfg.workers)) + "|",
         ]

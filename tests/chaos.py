@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import random
+import shutil
 import sys
 import tempfile
 import time
@@ -31,6 +32,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--reps", type=int, default=3, help="repetitions of every fault")
     parser.add_argument("--seed", type=int, default=0, help="seeds the injection times")
     parser.add_argument("--only", action="append", choices=list(FAULTS), help="these faults")
+    parser.add_argument("--keep", action="store_true", help="keep the stores, sweeps and logs")
     args = parser.parse_args(argv)
     faults = args.only or list(FAULTS)
     rng = random.Random(args.seed)
@@ -51,6 +53,10 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         ray.stop()
         stack.stop()
+        if args.keep:
+            print(f"stores, sweeps and logs kept in {folder}")
+        else:
+            shutil.rmtree(folder, ignore_errors=True)
     print()
     print("| fault | " + " | ".join(f"rep {i + 1}" for i in range(args.reps)) + " |")
     print("|---|" + "---|" * args.reps)

@@ -433,11 +433,12 @@ class PruningOptunaSweeper(OptunaSweeperImpl):
                         jobs.append((*job, *overrides))
                 returns = self.launcher.launch(jobs, initial_job_idx=self.job_idx)
             except BaseException as e:
+                # first the jobs (stopped) and their runs (ended: it never raises), then the trials
+                end_jobs_runs(self.client, self.config.tracking.experiment, keys, e)
                 for trial in trials:
                     log.warning("trial %d did not finish: FAIL", trial.number)
                     study.tell(trial, state=TrialState.FAIL, skip_if_finished=True)
                     beats.remove(trial._trial_id)
-                end_jobs_runs(self.client, self.config.tracking.experiment, keys, e)
                 raise
             self.job_idx += len(returns)
             failures = []

@@ -294,6 +294,10 @@ def broken_promises(
     return broken
 
 
+def _default_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _env(**extra: str) -> dict[str, str]:
     env = {**os.environ, "PYTHONUNBUFFERED": "1", **extra}
     env.pop("MLFLOW_TRACKING_URI", None)
@@ -320,6 +324,10 @@ class Sweep:
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT,
             text=True,
+            # Ctrl-C works as in a terminal even where this runs in the background: a shell
+            # without job control starts background commands with SIGINT ignored, and the
+            # ignore would be inherited
+            preexec_fn=_default_sigint,
         )
         return self
 

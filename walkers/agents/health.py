@@ -107,11 +107,11 @@ def guarded_step(
 def bad_gradients(optimizer: torch.optim.Optimizer, members: int) -> torch.Tensor:
     """Per member ``(members,)``: 1.0 where any of its gradients is NaN/inf. Every parameter's
     leading dimension holds the members (each member's copies, e.g. its critics, together)."""
-    finite = torch.ones(
-        members, dtype=torch.bool, device=optimizer.param_groups[0]["params"][0].device
-    )
-    for group in optimizer.param_groups:
-        for param in group["params"]:
-            if param.grad is not None:
-                finite &= torch.isfinite(param.grad).reshape(members, -1).all(dim=1)
+    grads = [p.grad for group in optimizer.param_groups for p in group["params"]]
+    grads = [g for g in grads if g is not None]
+    if members == 1:  # one agent: the total norm (fused over all gradients) is finite or not
+        return (~torch.isfinite(torch.nn.utils.get_total_norm(grads))).to(torch.float32).view(1)
+    finite = torch.ones(members, dtype=torch.bool, device=grads[0].device)
+    for grad in grads:
+        finite &= torch.isfinite(grad).reshape(members, -1).all(dim=1)
     return (~finite).to(torch.float32)

@@ -21,7 +21,6 @@ from walkers.tuning.studies import redacted
 
 log = logging.getLogger("walkers")
 
-JOB_KEY_TAG = tracking.JOB_KEY_TAG
 #: Tag: the machine (and Ray node) that trains the run; a resumed run: the latest one.
 WORKER_TAG = "walkers.worker"
 #: Tags of a population member's run: the population's size, the member's place in it.
@@ -56,7 +55,7 @@ def open_run(client, cfg: DictConfig, x_axis: str, data=None, extra_tags: dict |
     if data is not None:
         tags["dataset"] = data.id
     if cfg.job_key:
-        tags[JOB_KEY_TAG] = cfg.job_key
+        tags[tracking.JOB_KEY_TAG] = cfg.job_key
     tags |= (extra_tags or {}) | trial_tags(cfg)
     run_name = cfg.tracking.run_name or f"{algo}-{env_id}-s{cfg.seed}"
     if cfg.trial.number is not None:  # a trial of an Optuna study
@@ -134,7 +133,7 @@ def continue_earlier_attempt(client, cfg: DictConfig) -> DictConfig:
     experiment = client.get_experiment_by_name(cfg.tracking.experiment)
     if experiment is None:
         return cfg
-    query = tracking.tags_equal({JOB_KEY_TAG: cfg.job_key})
+    query = tracking.tags_equal({tracking.JOB_KEY_TAG: cfg.job_key})
     earlier = [
         r
         for r in tracking.search_runs(client, experiment.experiment_id, query)

@@ -15,6 +15,7 @@ from walkers.metrics import METRIC_DIRECTIONS
 
 OPTIMIZABLE_METRICS = tuple(METRIC_DIRECTIONS)  # every metric a sweep can optimize
 DEVICES = ("auto", "cpu", "cuda")
+IMPLEMENTATIONS = ("walkers", "sb3")
 
 
 def _int(v) -> bool:
@@ -65,6 +66,7 @@ RULES: list[tuple[str, callable, str]] = [
     ("population", positive_int, "an integer > 0"),
     ("torch_threads", lambda v: v is None or positive_int(v), "null or an integer > 0"),
     ("device", lambda v: v in DEVICES, "one of " + ", ".join(DEVICES)),
+    ("impl", lambda v: v in IMPLEMENTATIONS, "one of " + ", ".join(IMPLEMENTATIONS)),
     (
         "optimized_metric",
         lambda v: v in OPTIMIZABLE_METRICS,

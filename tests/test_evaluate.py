@@ -9,6 +9,7 @@ import pytest
 from PIL import Image, ImageSequence
 
 from tests.conftest import TINY, all_runs, compose_cfg, new_store, one_line_error, run_cli
+from walkers.seeding import eval_start_seeds, held_out_start_seeds
 from walkers.train import train
 from walkers.training.playback import evaluate
 
@@ -40,9 +41,13 @@ def evaluate_cfg(store, run, *overrides):
 
 def test_evaluate_reproduces_the_best_evaluation_and_writes_videos(trained, tmp_path):
     store, run = trained
-    result = evaluate(evaluate_cfg(store, run, "checkpoint=best", "episodes=1", f"out={tmp_path}"))
-    # best.pt was saved by the evaluation that scored best; replaying it with the same seed must
-    # give exactly that score (deterministic policy, same start state).
+    result = evaluate(
+        evaluate_cfg(
+            store, run, "checkpoint=best", "episodes=1", "start_states=run", f"out={tmp_path}"
+        )
+    )
+    # best.pt was saved by the evaluation that scored best; replaying it from the run's own
+    # evaluation start state must give exactly that score (deterministic policy, same start).
     history = store["client"].get_metric_history(run.info.run_id, "eval/return_mean")
     assert result["return_mean"] == pytest.approx(max(m.value for m in history), abs=1e-4)
 
@@ -61,6 +66,27 @@ def test_evaluate_reproduces_the_best_evaluation_and_writes_videos(trained, tmp_
     assert saved["returns"] == result["returns"]
     status = store["client"].get_run(run.info.run_id).info.status
     assert status == "FINISHED"  # logging an evaluation leaves the run as it was
+
+
+def test_evaluate_defaults_to_start_states_the_run_never_evaluated_on(trained, tmp_path):
+    """best.pt was chosen on the run's evaluation start states: its score there is flattered, so
+    by default walkers.evaluate plays a held-out seed stream, and says so."""
+    store, run = trained
+    seed = int(run.data.params["seed"])
+    held_out = set(held_out_start_seeds(seed, 5))
+    assert not held_out & set(eval_start_seeds(seed, 5))
+    common = ("checkpoint=best", "episodes=2", "video=false", f"out={tmp_path}")
+    fresh = evaluate(evaluate_cfg(store, run, *common))
+    own = evaluate(evaluate_cfg(store, run, *common, "start_states=run"))
+    assert fresh["start_states"] == "held_out" and own["start_states"] == "run"
+    assert fresh["returns"] != own["returns"]  # other start states, other (continuous) returns
+    result = run_cli(
+        [f"run_id={run.info.run_id}", "start_states=train", *store["overrides"]],
+        cwd=store["path"],
+        module="walkers.evaluate",
+    )
+    error = one_line_error(result)
+    assert "start_states='train'" in error and "held_out, run" in error
 
 
 def test_evaluate_a_checkpoint_file_without_the_run(trained, tmp_path):

@@ -19,8 +19,13 @@ from walkers.training.playback import evaluate
 @hydra.main(config_path=str(CONF_DIR), config_name="evaluate")
 def main(cfg: DictConfig) -> None:
     result = or_exit(evaluate, cfg)
+    where = (
+        "held-out start states (never evaluated on by the run)"
+        if result["start_states"] == "held_out"
+        else "the start states of the run's own evaluations (best.pt was chosen on them)"
+    )
     print(
-        f"return over {result['episodes']} episodes: "
+        f"return over {result['episodes']} episodes from {where}: "
         f"{result['return_mean']:.1f} ± {result['return_std']:.1f} "
         f"(min {min(result['returns']):.1f}, max {max(result['returns']):.1f})"
     )

@@ -29,7 +29,8 @@ STREAMS = {
     "eval_env": 1,  # evaluation episode i starts from reset(seed=eval_start_seeds(...)[i])
     "exploration": 2,  # off-policy warm-up actions and exploration noise
     "replay": 3,  # replay buffer / dataset batch sampling, PPO's minibatch shuffling
-    "policy": 4,  # stochastic policies' action sampling (REINFORCE, PPO)
+    "policy": 4,  # stochastic policies' action sampling (REINFORCE, PPO); SB3's one seed
+    "held_out_eval": 5,  # walkers.evaluate's default start states: never seen by the run
 }
 
 
@@ -56,9 +57,20 @@ def eval_start_seeds(seed: int, episodes: int) -> list[int]:
     return stream_seeds(seed, "eval_env", episodes)
 
 
+def training_env_seed(seed: int) -> int:
+    """The seed of the first reset of run ``seed``'s training env (then its own RNG runs)."""
+    return stream_seeds(seed, "train_env")[0]
+
+
+def held_out_start_seeds(seed: int, episodes: int) -> list[int]:
+    """Reset seeds no periodic evaluation of run ``seed`` used: ``best.pt`` was chosen on those,
+    so its score on them is flattered; these give it an unbiased one."""
+    return stream_seeds(seed, "held_out_eval", episodes)
+
+
 def first_training_reset(env: gym.Env, seed: int):
     """Reset the training env of run ``seed`` for its first episode: ``(obs, info)``."""
-    return env.reset(seed=stream_seeds(seed, "train_env")[0])
+    return env.reset(seed=training_env_seed(seed))
 
 
 def env_rng_state(env: gym.Env) -> dict:

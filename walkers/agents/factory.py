@@ -1,4 +1,5 @@
-"""The one place agents are built: ``cfg.algo``'s ``_target_`` class with its hyperparameters."""
+"""The one place agents are built: ``cfg.algo``'s ``_target_`` class with its hyperparameters
+(with ``impl=sb3``: Stable-Baselines3's twin of that algorithm, with the same hyperparameters)."""
 
 from __future__ import annotations
 
@@ -7,6 +8,8 @@ from hydra.errors import InstantiationException
 from omegaconf import DictConfig, OmegaConf
 
 from walkers.agents.base import Agent, resolve_device
+from walkers.agents.sb3_arguments import NotExpressible
+from walkers.agents.sb3_twin import SB3Twin
 from walkers.errors import ConfigError
 
 #: Config-selected classes ``instantiate`` may build: agents only.
@@ -20,7 +23,12 @@ def build_agent(cfg: DictConfig, spaces: dict, **data) -> Agent:
     ``data``: what an offline agent learns from (``dataset=``); online agents take nothing more.
     """
     kwargs = OmegaConf.to_container(cfg.algo, resolve=True)
-    kwargs.pop("name", None)
+    name = kwargs.pop("name", None)
+    if cfg.get("impl", "walkers") == "sb3":  # Stable-Baselines3's twin of the algorithm
+        try:
+            return SB3Twin(name, kwargs, **spaces, seed=cfg.seed, device=cfg.device)
+        except NotExpressible as e:
+            raise ConfigError(str(e)) from None
     try:
         # partial, then called: Hydra would turn a dataset object into a config node
         factory = hydra.utils.instantiate(

@@ -26,10 +26,10 @@ from walkers.analysis.stats import run_summary
 from walkers.seeding import (
     env_rng_state,
     eval_start_seeds,
-    first_training_reset,
     restore_env_rng,
     restore_torch_rng,
     torch_rng_state,
+    training_env_seed,
 )
 from walkers.tracking import ENV_STEPS, GRADIENT_STEPS, Tracker
 from walkers.training import checkpoints
@@ -182,11 +182,18 @@ class RunBook:
         """The loop's first reset: seeded from the run's seed in a fresh run; in a resumed one the
         env's RNG continues from the checkpoint (an interrupted episode cannot be continued, so
         a new one starts where the uninterrupted run's next episode would have)."""
+        seed = self.first_reset_seed()
+        return self.env.reset() if seed is None else self.env.reset(seed=seed)
+
+    def first_reset_seed(self) -> int | None:
+        """The seed of this session's first reset of the training env: the run's own in a fresh
+        run; None in a resumed run, whose env RNG is restored from its checkpoint here (for a
+        loop that resets the env itself, e.g. SB3's)."""
         if self._env_rng is None:
-            return first_training_reset(self.env, self.settings.seed)
+            return training_env_seed(self.settings.seed)
         restore_env_rng(self.env, self._env_rng)
         self._env_rng = None
-        return self.env.reset()
+        return None
 
     def record_episode(self, info: dict) -> None:
         """A training episode ended at the current step: count it, log its true return."""

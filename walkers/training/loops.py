@@ -3,6 +3,7 @@
     online:      act -> env step -> observe -> update -> book.after_step
     offline:     update (a gradient step on the dataset) -> book.after_step
     population:  act all -> step each env -> observe all -> one update -> each book.after_step
+    sb3:         Stable-Baselines3's own learn() loop; its callback -> book.after_step
 
 Off-policy agents learn every step after their warm-up, on-policy ones when their batch is
 complete (REINFORCE: episodes; PPO: a rollout of steps): the agent decides inside ``update()``,
@@ -23,6 +24,7 @@ from tqdm import tqdm
 
 from walkers.agents.actor_critic import ActorCritic
 from walkers.agents.base import Agent, Transition
+from walkers.agents.sb3_twin import SB3Twin
 from walkers.training.bookkeeping import RunBook
 
 
@@ -103,6 +105,50 @@ def train_population(
             book.progress.step = agent.steps
 
     return _running(books, loop, aggregate="perf/population_sps", settle=settle)
+
+
+def train_sb3(agent: SB3Twin, book: RunBook) -> dict[str, float]:
+    """``impl=sb3``: SB3's ``learn`` runs its own collection and updates; after every env step
+    its callback hands the book SB3's latest losses (under walkers' names), so evaluations,
+    checkpoints, pruning and ``final/*`` are a walkers run's. Returns the summary.
+
+    SB3 calls back after the env step and before it stores and learns from that step: an
+    evaluation or checkpoint at step s sees the agent of s - 1 updates (at the end of the run,
+    all of them). A resume starts a new episode, as a walkers resume does.
+    """
+    from stable_baselines3.common.callbacks import BaseCallback
+    from stable_baselines3.common.on_policy_algorithm import OnPolicyAlgorithm
+
+    p, s = book.progress, book.settings
+    on_policy = isinstance(agent.model, OnPolicyAlgorithm)
+
+    class BookKeeping(BaseCallback):
+        def __init__(self, bar: tqdm):
+            super().__init__()
+            self.bar = bar
+
+        def _on_step(self) -> bool:
+            p.step = self.num_timesteps
+            for done, info in zip(self.locals["dones"], self.locals["infos"], strict=True):
+                if done:
+                    book.record_episode(info)
+            losses = agent.latest_losses() if p.step % s.log_every == 0 else {}
+            stop = _after_step(book, losses, self.bar)
+            # SB3's PPO would complete its rollout past the budget; its off-policy loop stores
+            # and learns from the last step, then stops by itself
+            return not stop and not (on_policy and p.step >= s.total_steps)
+
+    def loop(bar: tqdm) -> None:
+        if (seed := book.first_reset_seed()) is not None:
+            agent.vec_env.seed(seed)  # SB3 resets the env itself, with this seed first
+        agent.model.learn(
+            s.total_steps - p.step, callback=BookKeeping(bar), reset_num_timesteps=False
+        )
+
+    def settle() -> None:
+        p.step = agent.model.num_timesteps
+
+    return _running([book], loop, settle=settle)[0]
 
 
 def _after_step(book: RunBook, losses: dict[str, torch.Tensor], bar: tqdm) -> bool:

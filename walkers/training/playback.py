@@ -4,8 +4,10 @@
     python -m walkers.evaluate checkpoint=path/to/best.pt render=human
 
 The checkpoint carries the run's config, so the env and the agent are rebuilt exactly as they
-were trained. Episodes are deterministic (``explore=False``) and seeded like the run's own
-evaluations. Rendering is headless (``rgb_array``, MuJoCo through EGL) unless ``render=human``.
+were trained. Episodes are deterministic (``explore=False``). By default they start from
+held-out start states, a seed stream the run never evaluated on: ``best.pt`` is the checkpoint
+whose periodic evaluation scored highest, so its score on those same start states is biased up
+(``start_states=run`` replays them, e.g. to reproduce a logged ``eval/return_mean``). Rendering is headless (``rgb_array``, MuJoCo through EGL) unless ``render=human``.
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ from omegaconf import DictConfig
 
 from walkers import tracking
 from walkers.errors import ConfigError
-from walkers.seeding import eval_start_seeds
+from walkers.seeding import eval_start_seeds, held_out_start_seeds
 from walkers.training import checkpoints
 from walkers.training.checkpoints import agent_from_checkpoint
 from walkers.training.envs import make_env
@@ -28,10 +30,16 @@ from walkers.training.video import write_videos
 log = logging.getLogger("walkers")
 
 NAMED_CHECKPOINTS = ("best", "last")
+START_STATES = {"held_out": held_out_start_seeds, "run": eval_start_seeds}
 RENDER_MODES = ("rgb_array", "human")
 
 
 def _check(cfg: DictConfig) -> None:
+    if cfg.start_states not in START_STATES:
+        raise ConfigError(
+            f"start_states={cfg.start_states!r} is not allowed: must be one of "
+            + ", ".join(START_STATES)
+        )
     if cfg.render not in RENDER_MODES:
         raise ConfigError(f"render={cfg.render!r} is not allowed: must be one of rgb_array, human")
     for key in ("episodes", "video_episodes"):
@@ -81,7 +89,7 @@ def evaluate(cfg: DictConfig) -> dict:
         returns, frames, fps = record_episodes(
             agent,
             env,
-            eval_start_seeds(seed, cfg.episodes),
+            START_STATES[cfg.start_states](seed, cfg.episodes),
             render_episodes=cfg.video_episodes if record else 0,
         )
     finally:
@@ -94,6 +102,7 @@ def evaluate(cfg: DictConfig) -> dict:
         "checkpoint": str(cfg.checkpoint),
         "episodes": cfg.episodes,
         "seed": seed,
+        "start_states": cfg.start_states,
         "return_mean": float(returns.mean()),
         "return_std": float(returns.std()),
         "returns": returns.tolist(),

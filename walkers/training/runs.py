@@ -47,6 +47,7 @@ def open_run(client, cfg: DictConfig, x_axis: str, data=None, extra_tags: dict |
         "algo": algo,
         "env": env_id,
         "seed": str(cfg.seed),
+        "impl": cfg.get("impl", "walkers"),
         WORKER_TAG: worker_name(),
         "git_commit": commit,
         "mlflow.source.git.commit": commit,
@@ -57,7 +58,8 @@ def open_run(client, cfg: DictConfig, x_axis: str, data=None, extra_tags: dict |
     if cfg.job_key:
         tags[tracking.JOB_KEY_TAG] = cfg.job_key
     tags |= (extra_tags or {}) | trial_tags(cfg)
-    run_name = cfg.tracking.run_name or f"{algo}-{env_id}-s{cfg.seed}"
+    twin = "-sb3" if cfg.get("impl") == "sb3" else ""
+    run_name = cfg.tracking.run_name or f"{algo}{twin}-{env_id}-s{cfg.seed}"
     if cfg.trial.number is not None:  # a trial of an Optuna study
         run_name = f"{cfg.trial.study}-trial{cfg.trial.number}"
         if cfg.seeds_per_trial > 1:

@@ -17,6 +17,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from walkers import tracking
 from walkers.agents.factory import build_agent
+from walkers.agents.sb3_twin import SB3Twin
 from walkers.errors import ConfigError
 from walkers.training import resume
 from walkers.training.bookkeeping import (
@@ -27,7 +28,7 @@ from walkers.training.bookkeeping import (
 )
 from walkers.training.envs import env_spaces, make_env
 from walkers.training.evaluation import per_target_return, with_normalized_score
-from walkers.training.loops import train_offline, train_online, train_population
+from walkers.training.loops import train_offline, train_online, train_population, train_sb3
 from walkers.training.runs import (
     MEMBER_TAG,
     POPULATION_TAG,
@@ -82,6 +83,8 @@ def _train_single(cfg: DictConfig, client, state: dict | None) -> dict[str, floa
         agent = build_agent(
             cfg, env_spaces(eval_env), **({"dataset": data} if data is not None else {})
         )
+        if isinstance(agent, SB3Twin):
+            agent.attach(env, cfg.total_steps)  # SB3's model is built on its training env
         axis = GRADIENT_STEP_AXIS if data is not None else ENV_STEP_AXIS
         trackers = [open_run(client, cfg, axis.name, data)]
         # From here on the run exists in MLflow: every way out sets its final status.
@@ -104,6 +107,8 @@ def _train_single(cfg: DictConfig, client, state: dict | None) -> dict[str, floa
                 log.info("resuming run %s at step %d", trackers[0].run_id, book.progress.step)
             if data is not None:
                 summary = train_offline(agent, book)
+            elif isinstance(agent, SB3Twin):
+                summary = train_sb3(agent, book)
             else:
                 summary = train_online(agent, env, book)
             if book.stopped_early:

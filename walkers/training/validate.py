@@ -10,6 +10,8 @@ from numbers import Real
 
 from omegaconf import DictConfig, OmegaConf
 
+from walkers.agents.sb3_arguments import NotExpressible, sb3_arguments
+from walkers.agents.sb3_twin import import_sb3
 from walkers.errors import ConfigError
 from walkers.metrics import METRIC_DIRECTIONS
 
@@ -156,6 +158,23 @@ def _check_population(cfg: DictConfig) -> None:
             )
 
 
+def _check_implementation(cfg: DictConfig) -> None:
+    """``impl=sb3``: an algorithm with an SB3 twin, settings SB3 can express, SB3 installed."""
+    if cfg.get("impl", "walkers") != "sb3":
+        return
+    hyperparameters = OmegaConf.to_container(cfg.algo, resolve=True)
+    try:
+        sb3_arguments(cfg.algo.name, hyperparameters)
+    except NotExpressible as e:
+        raise ConfigError(str(e)) from None
+    if cfg.population > 1:
+        raise ConfigError(
+            f"population={cfg.population} is not allowed with impl=sb3: SB3 trains one seed "
+            "per process (use a multirun over seeds)"
+        )
+    import_sb3()
+
+
 def _check_dataset(cfg: DictConfig) -> None:
     dataset = cfg.get("dataset")
     if is_offline(cfg) and not dataset:
@@ -190,6 +209,7 @@ def validate(cfg: DictConfig) -> None:
         cfg.eval_every <= cfg.total_steps,
         f"at most total_steps ({cfg.total_steps})",
     )
+    _check_implementation(cfg)
     _check_dataset(cfg)
     _check_population(cfg)
     algo = cfg.algo

@@ -73,7 +73,7 @@ MAPPING: dict[str, dict[str, str]] = {
         "gamma": "gamma (and VecNormalize's return discount)",
         "gae_lambda": "gae_lambda",
         "clip_coef": "clip_range",
-        "clip_value_loss": "clip_range_vf = clip_coef | None (SB3 clips V, not the max of 2 losses)",
+        "clip_value_loss": "clip_range_vf = clip_coef | None (SB3 clips V, not max of 2 losses)",
         "vf_coef": "vf_coef / 2 (SB3's value loss is mean (R-V)^2, walkers' 1/2 of it)",
         "ent_coef": "ent_coef",
         "max_grad_norm": "max_grad_norm (null: inf)",

@@ -7,7 +7,8 @@ The checkpoint carries the run's config, so the env and the agent are rebuilt ex
 were trained. Episodes are deterministic (``explore=False``). By default they start from
 held-out start states, a seed stream the run never evaluated on: ``best.pt`` is the checkpoint
 whose periodic evaluation scored highest, so its score on those same start states is biased up
-(``start_states=run`` replays them, e.g. to reproduce a logged ``eval/return_mean``). Rendering is headless (``rgb_array``, MuJoCo through EGL) unless ``render=human``.
+(``start_states=run`` replays them, e.g. to reproduce a logged ``eval/return_mean``).
+Rendering is headless (``rgb_array``, MuJoCo through EGL) unless ``render=human``.
 """
 
 from __future__ import annotations

@@ -253,6 +253,18 @@ def build_arms(
     return arms, left_out, splits
 
 
+def same_series_pairs(arms: Sequence[Arm]) -> list[tuple[str, str]]:
+    """The pairs of arms that differ only in the ``group_by`` keys (the same configuration
+    otherwise): what a study of those keys compares. With ``group_by=impl`` over several
+    algorithms, each algorithm's walkers arm against its SB3 twin, never TD3 against SAC."""
+    return [
+        (a.name, b.name)
+        for i, a in enumerate(arms)
+        for b in arms[i + 1 :]
+        if a.config == b.config and a.group_values != b.group_values
+    ]
+
+
 def series(arms: Sequence[Arm]) -> dict[str, str]:
     """For a score-vs-key plot: each arm's series (its configuration apart from the group_by
     keys), labelled by what differs between the series; "" when there is one series."""

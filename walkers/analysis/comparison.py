@@ -31,7 +31,13 @@ from omegaconf import DictConfig
 
 from walkers import tracking
 from walkers.analysis import stats
-from walkers.analysis.arms import Arm, build_arms, parse_group_by, unknown_key_hint
+from walkers.analysis.arms import (
+    Arm,
+    build_arms,
+    parse_group_by,
+    same_series_pairs,
+    unknown_key_hint,
+)
 from walkers.analysis.power import PairPower, pair_power
 from walkers.analysis.report import AXIS_NAMES, PUBLISHED_CAVEAT, verdict, write_report
 from walkers.errors import ConfigError
@@ -327,11 +333,13 @@ def compare_groups(
     arms: dict[str, Arm] | None = None,
     smallest_effect: float = 0.1,
     smallest_effect_abs: float | None = None,
+    pairs: list[tuple[str, str]] | None = None,
 ) -> Comparison:
     """Per-arm summaries and every pairwise comparison, in ``order`` (arm names, the keys of
     ``grouped``; ``arms`` describes them). Each pair's power is judged against the smallest
     difference worth detecting: ``smallest_effect_abs`` in the quantity's units, else
-    ``smallest_effect`` times the larger of the two arms' absolute means."""
+    ``smallest_effect`` times the larger of the two arms' absolute means. ``pairs``: the pairs
+    of arm names to compare; None: every pair."""
     boot = {"confidence": confidence, "n_resamples": n_resamples, "seed": seed}
     results = []
     for name in order:
@@ -348,8 +356,12 @@ def compare_groups(
                 arm=(arms or {}).get(name),
             )
         )
+    by_name = {r.algo: r for r in results}
+    chosen = (
+        combinations(results, 2) if pairs is None else [(by_name[a], by_name[b]) for a, b in pairs]
+    )
     pairs = []
-    for a, b in combinations(results, 2):
+    for a, b in chosen:
         quantities = [("score", a.scores, b.scores)]
         if a.x_axis == b.x_axis:  # a rate of learning only compares on the same x-axis
             quantities.append(("auc", a.auc, b.auc))
@@ -469,6 +481,8 @@ def build_comparison(cfg: DictConfig):
         arms={arm.name: arm for arm in arms},
         smallest_effect=cfg.smallest_effect,
         smallest_effect_abs=cfg.smallest_effect_abs,
+        # a study of group_by keys compares arms that differ only in them, where there are such
+        pairs=(same_series_pairs(arms) or None) if group_by else None,
     )
     comparison.left_out = notes
     comparison.group_by = group_by

@@ -141,28 +141,59 @@ def curves_on_grid(result: AlgoResult, grid: np.ndarray) -> np.ndarray:
     return np.stack([np.interp(grid, r.steps, r.returns) for r in result.runs])
 
 
+def _curve_panels(c: Comparison) -> list[tuple[str, str, list[AlgoResult]]]:
+    """``(x-axis, title, arms)`` per panel: one per x-axis; in a study of ``group_by`` keys over
+    several series (e.g. ``group_by=impl`` over algorithms), one per series and x-axis, so each
+    panel shows the arms that its verdicts compare."""
+    with_arms = all(r.arm is not None for r in c.algos)
+    labels = arms.series([r.arm for r in c.algos]) if c.group_by and with_arms else {}
+    panels: dict[tuple[str, str], list[AlgoResult]] = {}
+    for result in c.algos:
+        panels.setdefault((result.x_axis, labels.get(result.algo, "")), []).append(result)
+    out = []
+    for (axis, label_), results in panels.items():
+        title = c.env_id if axis == ENV_STEPS else f"{c.env_id}, offline"
+        out.append((axis, f"{title}: {label_}" if label_ else title, results))
+    return out
+
+
 def plot_learning_curves(c: Comparison, path: Path) -> Path:
-    """One panel per x-axis (env steps; gradient steps for offline runs), shared y-axis."""
-    axes_used = list(c.grids)
+    """One panel per x-axis (env steps; gradient steps for offline runs), or per series of a
+    study (:func:`_curve_panels`), on a shared y-axis; the published reference figures of the
+    panel's algorithms as dotted lines."""
+    panels = _curve_panels(c)
+    columns = min(len(panels), 4)
+    rows = -(-len(panels) // columns)
     fig, axes = plt.subplots(
-        1, len(axes_used), figsize=(7 * len(axes_used), 4.5), sharey=True, squeeze=False
+        rows, columns, figsize=(7 * columns, 4.5 * rows), sharey=True, squeeze=False
     )
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-    for ax, axis in zip(axes[0], axes_used, strict=True):
+    color_of = {r.algo: colors[i % len(colors)] for i, r in enumerate(c.algos)}
+    for ax, (axis, title, results) in zip(axes.flat, panels, strict=False):
         grid = c.grids[axis]
-        for i, result in enumerate(c.algos):
-            if result.x_axis != axis:
-                continue
+        for result in results:
             mean, low, high = stats.mean_band(curves_on_grid(result, grid), c.confidence)
-            color = colors[i % len(colors)]
+            color = color_of[result.algo]
             ax.plot(grid, mean, color=color, label=f"{label(result)} ({len(result.runs)} seeds)")
             ax.fill_between(grid, low, high, color=color, alpha=0.2, linewidth=0)
+        algorithms = {r.algorithm for r in results}
+        for fig_ in (f for f in c.published if f.get("algo") in algorithms):
+            ax.axhline(
+                fig_["return"],
+                color="black",
+                linestyle=":",
+                linewidth=1,
+                label=f"published {fig_['algo']} {fig_['return']:,} ({fig_.get('env_version')})",
+            )
         ax.axhline(c.threshold, color="grey", linestyle="--", linewidth=1, label="threshold")
         ax.set_xlabel(AXIS_NAMES[axis])
-        ax.set_title(c.env_id if axis == ENV_STEPS else f"{c.env_id}, offline")
-        ax.legend()
+        ax.set_title(title)
+        ax.legend(fontsize="small")
         ax.grid(alpha=0.3)
-    axes[0][0].set_ylabel(f"eval return (mean, {c.confidence:.0%} bootstrap CI)")
+    for ax in list(axes.flat)[len(panels) :]:
+        ax.set_visible(False)
+    for row in axes:
+        row[0].set_ylabel(f"eval return (mean, {c.confidence:.0%} bootstrap CI)")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)

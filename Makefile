@@ -8,6 +8,12 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 MLFLOW_PORT ?= 5000
 ARGS ?=
+# make bench-learning: the study of walkers against its Stable-Baselines3 twins
+BENCH_ALGOS ?= td3,sac
+BENCH_ENV ?= walker2d
+BENCH_STEPS ?= 100000
+BENCH_SEEDS ?= 3
+BENCH_EXPERIMENT ?= bench_learning_$(BENCH_ENV)
 
 help:  ## list the make targets
 	@grep -hE '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk 'BEGIN {FS = ":.*## "}; {printf "  make %-16s %s\n", $$1, $$2}'
@@ -58,13 +64,12 @@ stack: $(STAMP)  ## PostgreSQL + an MLflow server on it for a team or a cluster,
 bench: $(STAMP)  ## benchmarks: the TD3 update vs a plain eager implementation, side by side
 	$(PY) benchmarks/bench_update.py $(ARGS)
 
-bench-throughput: $(STAMP)  ## env steps/s of walkers TD3/DDPG/SAC/PPO/REINFORCE vs Stable-Baselines3 on Walker2d (installs SB3)
-	$(VENV)/bin/pip install --quiet -e '.[bench]'
+bench-throughput: $(STAMP)  ## env steps/s of walkers TD3/DDPG/SAC/PPO/REINFORCE vs Stable-Baselines3 on Walker2d
 	$(PY) benchmarks/bench_throughput.py $(ARGS)
 
-bench-learning: $(STAMP)  ## learning at equal budget: walkers TD3 vs SB3 TD3, final returns over seeds, IQM + CI (hours by default; quick: ARGS="--env pendulum --steps 15000 --seeds 3")
-	$(VENV)/bin/pip install --quiet -e '.[bench]'
-	$(PY) benchmarks/bench_learning.py $(ARGS)
+bench-learning: $(STAMP)  ## walkers vs its Stable-Baselines3 twins through the platform: impl=walkers,sb3 x seeds, then a group_by=impl report (BENCH_ALGOS=td3,sac BENCH_ENV=walker2d BENCH_STEPS=100000 BENCH_SEEDS=3; quick: BENCH_ENV=pendulum BENCH_STEPS=15000)
+	$(PY) -m walkers.train -m algo=$(BENCH_ALGOS) impl=walkers,sb3 env=$(BENCH_ENV) 'seed=range($(BENCH_SEEDS))' total_steps=$(BENCH_STEPS) torch_threads=1 progress=false tracking.experiment=$(BENCH_EXPERIMENT) hydra/launcher=joblib hydra.launcher.n_jobs=2 $(ARGS)
+	$(PY) -m walkers.compare env=$(BENCH_ENV) algos=[$(BENCH_ALGOS)] group_by=impl total_steps=$(BENCH_STEPS) tracking.experiment=$(BENCH_EXPERIMENT)
 
 bench-scale: $(STAMP)  ## a seed study through joblib vs a loopback Ray cluster of 1 and 2 workers; the study and a sweep with N workers on paper
 	$(PY) benchmarks/bench_scale.py $(ARGS)

@@ -14,7 +14,7 @@ PPO has its own table, against SB3's PPO: both at the reference settings (64-64 
 the agent for walkers, ``VecNormalize`` for SB3, as RL-Zoo runs MuJoCo); a round there is one
 rollout and its update. Then: the TD3 update alone, an estimate of its FLOPs, this machine's fp32
 matmul rate, and the memory of a full 1M-transition replay buffer. SB3 is a benchmark-only
-dependency (``pip install -e '.[bench]'``); without it the SB3 rows are skipped. ``--only PPO``
+dependency (``pip install -e '.[sb3]'``); without it the SB3 rows are skipped. ``--only PPO``
 runs only the contenders with PPO in their name. A benchmark, not a test: nothing here asserts on
 time.
 """
@@ -214,7 +214,7 @@ def contenders(only: str | None = None) -> dict:
         }
         loops["SB3 PPO"] = SB3PPOLoop
     except ImportError:
-        print("stable-baselines3 not installed: SB3 rows skipped (pip install -e '.[bench]')")
+        print("stable-baselines3 not installed: SB3 rows skipped (pip install -e '.[sb3]')")
     return {name: make() for name, make in loops.items() if only is None or only in name}
 
 

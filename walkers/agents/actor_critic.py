@@ -1,17 +1,16 @@
-"""Off-policy actor-critic with experience replay: the core of DDPG, TD3 and SAC.
+"""Off-policy actor-critic with experience replay: the shared core of TD3, DDPG and SAC.
 
-TD3 (Fujimoto et al. 2018) is this core with ``num_critics=2`` (clipped double-Q),
-``policy_noise > 0`` (target policy smoothing) and ``policy_delay=2`` (delayed actor and target
-updates). DDPG as the TD3 paper's "our DDPG" is the same core with one critic, no smoothing and
-no delay. :meth:`ActorCritic.update` follows Algorithm 1 of the TD3 paper line by line.
+The core holds what the three share: replay buffers, the actor and critic ensembles and their
+targets, Adam, the uniform random warm-up, the NaN/inf guard, populations and checkpoints, and
+the loop of one update (:meth:`ActorCritic.update`): sample a mini-batch, step the critics onto
+their target, then every ``policy_delay`` updates step the actor (and what follows it) and move
+the targets. What makes an algorithm is its own module, readable next to its paper:
 
-SAC (:mod:`walkers.agents.sac`) shares the update's skeleton (critics, then the actor, then the
-soft target updates) and overrides what differs, each a small hook: its stochastic actor
-(:attr:`ActorCritic.actor_class`), no target actor (:attr:`ActorCritic.uses_actor_target`), the
-value the critics regress onto (:meth:`ActorCritic.next_value`), the actor loss, how an action
-is explored (:meth:`ActorCritic.policy`), the random numbers of an update
-(:meth:`ActorCritic.update_noise`), and a step after the actor's (its temperature,
-:meth:`ActorCritic.after_actor_step`).
+- :mod:`walkers.agents.td3`: TD3's target (clipped smoothing noise, min of the twin critics),
+  its deterministic policy gradient, delayed updates and Gaussian exploration (Algorithm 1 of
+  Fujimoto et al. 2018); :mod:`walkers.agents.ddpg` is TD3 with those three off;
+- :mod:`walkers.agents.sac`: the soft target, the reparameterized actor loss, the temperature
+  and exploration by the policy's own samples.
 
 Every network is an ensemble with a leading *member* dimension: a single agent is a population of
 one, ``population=K`` trains K independent seeds (``seed, seed + 1, ...``) with one batched
@@ -36,7 +35,7 @@ from walkers.agents import population as members_io
 from walkers.agents.base import Agent, Transition, resolve_device
 from walkers.agents.health import NonFiniteGuard, guarded_step
 from walkers.agents.networks import EnsembleActor, make_critic, soft_update
-from walkers.agents.noise import NOISE_TYPES, GaussianNoise
+from walkers.agents.noise import GaussianNoise
 from walkers.data.replay import Batch, ReplayBuffer
 from walkers.seeding import numpy_rng, stream_seeds
 
@@ -65,10 +64,15 @@ class Member:
 
 
 class ActorCritic(Agent):
-    """The shared core; defaults are TD3's reference hyperparameters (see conf/algo/td3.yaml)."""
+    """The shared core (see the module docstring). A subclass sets :attr:`num_critics`,
+    :attr:`policy_delay` (or an attribute of that name in its constructor), its actor class, and
+    implements the hooks: :meth:`exploration_noise`, :meth:`policy`, :meth:`update_noise`,
+    :meth:`next_value` and :meth:`actor_loss` (optionally :meth:`after_actor_step`)."""
 
     actor_class: type[nn.Module] = EnsembleActor  # built as (n, obs, act, hidden, low, high)
     uses_actor_target = True  # a target actor pi' (DDPG, TD3); SAC has none
+    num_critics = 2  # critics per member
+    policy_delay = 1  # critic updates per actor update and target move
 
     def __init__(
         self,
@@ -82,35 +86,23 @@ class ActorCritic(Agent):
         hidden_sizes: Sequence[int] = (256, 256),
         gamma: float = 0.99,
         tau: float = 0.005,
-        num_critics: int = 2,
-        policy_noise: float = 0.2,
-        noise_clip: float = 0.5,
-        policy_delay: int = 2,
-        exploration_noise: float = 0.1,
         buffer_size: int = 1_000_000,
         actor_lr: float | None = None,
         critic_lr: float | None = None,
         critic_architecture: str = "mlp",
         critic_hidden_sizes: Sequence[int] | None = None,
-        noise_type: str = "gaussian",
         population: int = 1,
         compile: bool = False,
         device: str = "cpu",
         seed: int = 0,
     ):
-        if noise_type not in NOISE_TYPES:
-            raise ValueError(f"noise_type={noise_type!r} is not one of {sorted(NOISE_TYPES)}")
         self.device = resolve_device(device)
         self.batch_size, self.learning_starts = int(batch_size), int(learning_starts)
         self.gamma, self.tau = gamma, tau
-        self.policy_noise, self.noise_clip = policy_noise, noise_clip
-        self.policy_delay = policy_delay
-        self.population, self.num_critics = int(population), num_critics
+        self.population = int(population)
         self.action_low = np.asarray(action_low, dtype=np.float32)
         self.action_high = np.asarray(action_high, dtype=np.float32)
         act_dim = len(self.action_low)
-        # exploration noise std is a fraction of the action half-range
-        self.noise_scale = (self.action_high - self.action_low) / 2
 
         torch.manual_seed(seed)
         self.actor = self.actor_class(
@@ -118,7 +110,7 @@ class ActorCritic(Agent):
         ).to(self.device)
         critic_hidden = hidden_sizes if critic_hidden_sizes is None else critic_hidden_sizes
         self.critic = make_critic(
-            critic_architecture, obs_dim, act_dim, critic_hidden, num_critics * self.population
+            critic_architecture, obs_dim, act_dim, critic_hidden, self.num_critics * self.population
         ).to(self.device)
         self.actor_target = (
             copy.deepcopy(self.actor).requires_grad_(False) if self.uses_actor_target else None
@@ -140,7 +132,7 @@ class ActorCritic(Agent):
             self.members.append(
                 Member(
                     rng,
-                    NOISE_TYPES[noise_type](exploration_noise, act_dim, rng),
+                    self.exploration_noise(rng, act_dim),
                     ReplayBuffer(buffer_size, obs_dim, act_dim, self.device, replay_seed),
                 )
             )
@@ -180,16 +172,14 @@ class ActorCritic(Agent):
             obs_t = torch.as_tensor(obs, dtype=torch.float32, device=self.device)
             return self.policy(obs_t.unsqueeze(1), noise)
 
+    def exploration_noise(self, rng: np.random.Generator, act_dim: int) -> GaussianNoise:
+        """A member's exploration noise process, drawing from its exploration stream ``rng``."""
+        raise NotImplementedError
+
     def policy(self, obs: torch.Tensor, noise: np.ndarray | None) -> np.ndarray:
         """``(K, act_dim)`` actions for ``(K, 1, obs_dim)`` observations; ``noise``: each
-        member's exploration noise ``(K, act_dim)``, or None for the greedy policy.
-
-        Deterministic actors: pi(s) plus the noise (a fraction of the action half-range),
-        clipped to the bounds."""
-        actions = self.actor(obs)[:, 0].cpu().numpy()
-        if noise is not None:
-            actions = np.clip(actions + noise * self.noise_scale, self.action_low, self.action_high)
-        return actions.astype(np.float32)
+        member's exploration noise sample ``(K, act_dim)``, or None for the greedy policy."""
+        raise NotImplementedError
 
     def observe_population(self, transitions: Sequence[Transition]) -> None:
         for member, t in zip(self.members, transitions, strict=True):
@@ -204,7 +194,7 @@ class ActorCritic(Agent):
     def observe(self, t: Transition) -> None:
         self.observe_population([t])
 
-    # --- learning (TD3 paper, Algorithm 1) ------------------------------------------------------
+    # --- learning: the loop of one update --------------------------------------------------------
     def update(self) -> dict[str, torch.Tensor]:
         if self.steps < self.update_after or len(self.buffer) < self.batch_size:
             return {}
@@ -212,13 +202,13 @@ class ActorCritic(Agent):
         b = self.sample()  # a mini-batch of N transitions (s, a, r, s', d) per member
         critic_noise, actor_noise = self.update_noise(b)
 
-        # Critic: y = r + gamma (1 - d) V'(s');  theta_i <- argmin N^-1 sum (y - Q_i)^2
+        # Critics: y = r + gamma (1 - d) V'(s');  theta_i <- argmin N^-1 sum (y - Q_i)^2
         critic_loss, q_mean = self._critic_loss(b, critic_noise)
         critic_bad = guarded_step(self.critic_optimizer, critic_loss, self.num_critics)
         actor_bad = None  # this update's actor step skipped (None: no actor step this time)
         metrics = {"loss/critic": _logged(critic_loss), "train/q_mean": _logged(q_mean)}
 
-        # Every d updates: the policy gradient (DDPG/TD3: deterministic, on Q_1), then the soft
+        # Every d updates: the actor's step (and the algorithm's step after it), then the soft
         # target updates theta' <- tau theta + (1 - tau) theta', phi' <- tau phi + (1 - tau) phi'.
         if self.num_updates % self.policy_delay == 0:
             self.critic.requires_grad_(False)  # the actor's gradient only: no critic weight grads
@@ -238,9 +228,8 @@ class ActorCritic(Agent):
 
     def update_noise(self, b: Batch) -> tuple[torch.Tensor | None, torch.Tensor | None]:
         """The random numbers of one update, for the critic loss and the actor loss: drawn
-        outside them so a compiled update draws the same numbers as eager. TD3: the target
-        smoothing noise eps ~ N(0, 1) (none without smoothing); the actor needs none."""
-        return (torch.randn_like(b.action) if self.policy_noise > 0 else None), None
+        outside them so a compiled update draws the same numbers as eager."""
+        raise NotImplementedError
 
     def critic_loss(
         self, b: Batch, noise: torch.Tensor | None
@@ -258,16 +247,9 @@ class ActorCritic(Agent):
         return member_loss, q.detach().mean(dim=(1, 2))
 
     def next_value(self, next_obs: torch.Tensor, noise: torch.Tensor | None) -> torch.Tensor:
-        """V'(s') ``(K, N)`` of the critic target. DDPG/TD3: min_j Q'_j(s', a~) with
-        a~ = clip(pi'(s') + clip(sigma * eps, -c, c), low, high), eps ~ N(0, 1) = ``noise``
-        (target policy smoothing; None: a~ = pi'(s'))."""
-        next_action = self.actor_target(next_obs)
-        if noise is not None:
-            eps = (noise * self.policy_noise).clamp(-self.noise_clip, self.noise_clip)
-            next_action = (next_action + eps * self.actor.action_scale).clamp(
-                self.low_t, self.high_t
-            )
-        return self.min_target_q(next_obs, next_action)
+        """V'(s') ``(K, N)``, what the critics' target bootstraps from (``noise``: the critic's
+        part of :meth:`update_noise`)."""
+        raise NotImplementedError
 
     def min_target_q(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         """min_j Q'_j(s, a) ``(K, N)`` over each member's target critics (clipped double-Q)."""
@@ -277,16 +259,14 @@ class ActorCritic(Agent):
     def actor_loss(
         self, obs: torch.Tensor, noise: torch.Tensor | None
     ) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """Per-member actor loss ``(K,)`` and what :meth:`after_actor_step` needs of it (here
-        nothing): -Q_1(s, pi(s)), the deterministic policy gradient."""
-        q_pi = self.critic(obs, self.actor(obs), members=slice(0, None, self.num_critics))
-        return -q_pi.mean(dim=-1), None
+        """Per-member actor loss ``(K,)`` and what :meth:`after_actor_step` needs of it."""
+        raise NotImplementedError
 
     def after_actor_step(
         self, actor_info: torch.Tensor | None, skip: torch.Tensor
     ) -> dict[str, torch.Tensor]:
         """A step after the actor's, before the target updates (SAC: the temperature); its
-        metrics. ``skip``: members whose update is skipped (a non-finite critic loss)."""
+        metrics. ``skip``: members whose update is skipped (a non-finite loss)."""
         return {}
 
     def sample(self) -> Batch:

@@ -12,20 +12,36 @@ back into a population (:func:`load_member_state_dict`, ``resume=[id,id,...]``).
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numpy as np
 import torch
 
 from walkers.agents.base import Agent, Transition
+from walkers.agents.health import NonFiniteGuard
 
-if TYPE_CHECKING:
-    from walkers.agents.actor_critic import ActorCritic
+
+class Population(Protocol):
+    """What member I/O needs of an agent with members (an
+    :class:`~walkers.agents.actor_critic.ActorCritic`, which imports this module)."""
+
+    members: list  # each member's own part: rng, noise, buffer (state_dict / load_state_dict)
+    guard: NonFiniteGuard
+    actor: torch.nn.Module
+    device: torch.device
+
+    def member_cuts(self, i: int) -> dict[str, slice]: ...
+
+    def load_counters(self, state: dict) -> None: ...
+
+    def refill_if_lost(self, buffer_state: dict) -> None: ...
+
+    def resume_notes(self) -> dict[str, str]: ...
 
 ADAM_MOMENTS = ("exp_avg", "exp_avg_sq")
 
 
-def member_state_dict(agent: ActorCritic, i: int, with_buffer: bool = False) -> dict:
+def member_state_dict(agent: Population, i: int, with_buffer: bool = False) -> dict:
     """Member ``i`` of ``agent`` as a single agent's ``state_dict()``: its slice of every
     per-member part (``agent.member_cuts``: networks, targets, Adam moments, ...), its RNG,
     noise, buffer and guard counters; the shared counters."""
@@ -50,7 +66,7 @@ def member_state_dict(agent: ActorCritic, i: int, with_buffer: bool = False) -> 
 
 
 @torch.no_grad()
-def load_member_state_dict(agent: ActorCritic, i: int, state: dict) -> None:
+def load_member_state_dict(agent: Population, i: int, state: dict) -> None:
     """Load a single agent's ``state_dict()`` into member ``i`` of ``agent``.
 
     Counters (env steps, updates, Adam's step count) are shared, so every member must be at the
@@ -89,7 +105,7 @@ class MemberAgent(Agent):
     """Member ``index`` of a population seen as an agent of its own: it acts greedily
     (evaluations) and checkpoints as a single agent; the population does the learning."""
 
-    def __init__(self, population: ActorCritic, index: int):
+    def __init__(self, population: Population, index: int):
         self.population, self.index = population, index
         self.members = slice(index, index + 1)
         self.device = population.device

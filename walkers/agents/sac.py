@@ -1,9 +1,9 @@
 """SAC: Soft Actor-Critic with automatic entropy tuning (Haarnoja et al. 2018, "Soft Actor-Critic
 Algorithms and Applications", the "v2" paper's Algorithm 1).
 
-The off-policy core (:class:`~walkers.agents.actor_critic.ActorCritic`: replay, twin critics as
-one ensemble, clipped double-Q, soft target updates, the NaN guard, populations, checkpoints,
-``compile``) with what makes it SAC, each a hook of the core:
+The off-policy core (:class:`~walkers.agents.actor_critic.ActorCritic`: replay, the critics as
+one ensemble and the min over a member's target critics, soft target updates, the NaN guard,
+populations, checkpoints, ``compile``) runs the loop of an update; this module is SAC's math:
 
 - the actor is a squashed Gaussian, a = tanh(mu(s) + sigma(s) * eps) scaled onto the bounds,
   eps ~ N(0, I) (:class:`~walkers.agents.networks.EnsembleGaussianActor`); no target actor;
@@ -26,15 +26,18 @@ import torch
 from walkers.agents.actor_critic import ActorCritic
 from walkers.agents.health import guarded_step
 from walkers.agents.networks import EnsembleGaussianActor, Temperature
+from walkers.agents.noise import GaussianNoise
 from walkers.data.replay import Batch
 
 
 class SAC(ActorCritic):
-    """Soft Actor-Critic; hyperparameters are :class:`ActorCritic`'s that apply (``lr``,
-    ``batch_size``, ``tau``, ...) plus the temperature's, documented in ``conf/algo/sac.yaml``."""
+    """Soft Actor-Critic; hyperparameters are the core's (``lr``, ``batch_size``, ``tau``, ...)
+    plus the temperature's, documented in ``conf/algo/sac.yaml``."""
 
     actor_class = EnsembleGaussianActor
     uses_actor_target = False  # the reference SAC (v2) has none: a' is sampled from pi itself
+    num_critics = 2  # clipped double-Q
+    policy_delay = 1  # actor and temperature at every update
 
     def __init__(
         self,
@@ -50,21 +53,7 @@ class SAC(ActorCritic):
     ):
         if alpha_init <= 0:
             raise ValueError(f"alpha_init={alpha_init!r} is not allowed: must be a number > 0")
-        super().__init__(
-            obs_dim,
-            action_low,
-            action_high,
-            lr=lr,
-            num_critics=2,
-            policy_noise=0.0,
-            noise_clip=0.0,
-            policy_delay=1,  # actor and temperature every update
-            # A member's exploration "noise" is the eps ~ N(0, I) of its policy sample, drawn
-            # from the member's own exploration stream (walkers.seeding).
-            exploration_noise=1.0,
-            noise_type="gaussian",
-            **hyperparameters,
-        )
+        super().__init__(obs_dim, action_low, action_high, lr=lr, **hyperparameters)
         act_dim = len(self.action_low)
         self.target_entropy = -float(act_dim) if target_entropy is None else float(target_entropy)
         self.temperature = Temperature(self.population, alpha_init).to(self.device)
@@ -73,6 +62,11 @@ class SAC(ActorCritic):
         )
 
     # --- acting ---------------------------------------------------------------------------------
+    def exploration_noise(self, rng: np.random.Generator, act_dim: int) -> GaussianNoise:
+        """The eps ~ N(0, I) of a member's policy sample, from its own exploration stream
+        (walkers.seeding): SAC explores by sampling its policy, with no added noise."""
+        return GaussianNoise(1.0, act_dim, rng)
+
     def policy(self, obs: torch.Tensor, noise: np.ndarray | None) -> np.ndarray:
         """A sample of pi(.|s) with eps = ``noise`` (exploring), else tanh(mu(s)) (greedy)."""
         if noise is None:

@@ -22,7 +22,6 @@ import logging
 import math
 import re
 from collections import Counter
-from dataclasses import dataclass, field
 from itertools import combinations
 from pathlib import Path
 
@@ -38,8 +37,15 @@ from walkers.analysis.arms import (
     same_series_pairs,
     unknown_key_hint,
 )
-from walkers.analysis.power import PairPower, pair_power
-from walkers.analysis.report import AXIS_NAMES, PUBLISHED_CAVEAT, verdict, write_report
+from walkers.analysis.power import pair_power
+from walkers.analysis.report import verdict, write_report
+from walkers.analysis.results import (
+    AXIS_NAMES,
+    AlgoResult,
+    Comparison,
+    PairResult,
+    SeedRun,
+)
 from walkers.errors import ConfigError
 from walkers.tracking import ENV_STEPS, GRADIENT_STEPS, KIND_TAG
 
@@ -51,155 +57,6 @@ SCORES = ("final/return_mean", "final/return_last10", "final/auc")
 
 def x_axis(run) -> str:
     return run.data.tags.get(tracking.X_AXIS_TAG, ENV_STEPS)
-
-
-def _finite_or_none(x: float) -> float | None:
-    """JSON has no inf/nan: "never reached" and "no CI" become null."""
-    return float(x) if np.isfinite(x) else None
-
-
-@dataclass
-class SeedRun:
-    """One training run as the comparison sees it."""
-
-    run_id: str
-    algo: str
-    seed: str
-    steps: np.ndarray
-    returns: np.ndarray
-    summary: dict[str, float]
-    x_axis: str = ENV_STEPS
-    dataset: str | None = None  # offline runs: what they learned from
-    normalized_score: float | None = None  # offline runs: 0 = random policy, 100 = the dataset's
-
-
-@dataclass
-class AlgoResult:
-    """One arm's results. ``algo`` is the arm's name: the algorithm's when it has one
-    configuration (see :mod:`walkers.analysis.arms`); ``arm`` tells its algorithm and
-    configuration."""
-
-    algo: str
-    runs: list[SeedRun]
-    scores: np.ndarray
-    iqm: tuple[float, float, float]  # point, low, high
-    auc: np.ndarray
-    steps_to_threshold: np.ndarray  # inf where a seed never reached it
-    arm: Arm | None = None
-
-    @property
-    def algorithm(self) -> str:
-        """The algorithm its runs trained (the ``algo`` tag)."""
-        return self.arm.algo if self.arm else self.runs[0].algo
-
-    @property
-    def x_axis(self) -> str:
-        return self.runs[0].x_axis
-
-    @property
-    def dataset(self) -> str | None:
-        return self.runs[0].dataset
-
-    @property
-    def normalized_score_mean(self) -> float | None:
-        """Mean final normalized score over the seeds that have one (offline runs)."""
-        scores = [r.normalized_score for r in self.runs if r.normalized_score is not None]
-        return float(np.mean(scores)) if scores else None
-
-    def as_dict(self) -> dict:
-        reached = np.isfinite(self.steps_to_threshold)
-        return {
-            "algorithm": self.algorithm,
-            "group": self.arm.group_values if self.arm else {},
-            "differs_in": self.arm.distinct if self.arm else {},
-            "seeds": len(self.runs),
-            "x_axis": self.x_axis,
-            "dataset": self.dataset,
-            "normalized_score_mean": self.normalized_score_mean,
-            "run_ids": [r.run_id for r in self.runs],
-            "score_mean": float(self.scores.mean()),
-            "score_std": float(self.scores.std()),
-            "iqm": self.iqm[0],
-            "iqm_low": _finite_or_none(self.iqm[1]),
-            "iqm_high": _finite_or_none(self.iqm[2]),
-            "auc_mean": float(self.auc.mean()),
-            "auc_std": float(self.auc.std()),
-            "threshold_reached": int(reached.sum()),
-            "steps_to_threshold_median": _finite_or_none(np.median(self.steps_to_threshold)),
-        }
-
-
-@dataclass
-class PairResult:
-    """A vs B on one per-seed quantity: P(A > B) with its CI and a Mann-Whitney p-value."""
-
-    a: str
-    b: str
-    quantity: str
-    p_improvement: tuple[float, float, float]
-    p_value: float
-    power: PairPower | None = None  # the difference, its size, the power to see it, seeds
-
-    def flipped(self) -> PairResult:
-        """B vs A: P(B > A) = 1 - P(A > B), the interval mirrored; the p-value is symmetric."""
-        p, low, high = self.p_improvement
-        power = self.power.flipped() if self.power is not None else None
-        return PairResult(
-            self.b, self.a, self.quantity, (1 - p, 1 - high, 1 - low), self.p_value, power
-        )
-
-    def decisive(self, confidence: float) -> int:
-        """+1 if A is reliably better, -1 if B is, 0 if the data can't tell."""
-        _, low, high = self.p_improvement
-        if not self.p_value < 1 - confidence:
-            return 0
-        return 1 if low > 0.5 else -1 if high < 0.5 else 0
-
-
-@dataclass
-class Comparison:
-    env_id: str
-    threshold: float
-    budgets: dict[str, int]  # x-axis -> total_steps of the runs compared on it
-    score: str
-    confidence: float
-    algos: list[AlgoResult]
-    pairs: list[PairResult]
-    grids: dict[str, np.ndarray]  # x-axis -> steps of the aligned learning curves
-    left_out: list[str] = field(default_factory=list)
-    group_by: list[str] = field(default_factory=list)  # the study's keys; []: by algorithm
-    splits: list[str] = field(default_factory=list)  # groups of several configurations
-    published: list[dict] = field(default_factory=list)  # reference figures (conf/env/*.yaml)
-
-    def as_dict(self) -> dict:
-        return {
-            "env": self.env_id,
-            "threshold": self.threshold,
-            "total_steps": self.budgets.get(ENV_STEPS),
-            "gradient_steps": self.budgets.get(GRADIENT_STEPS),
-            "score": self.score,
-            "confidence": self.confidence,
-            "algos": {r.algo: r.as_dict() for r in self.algos},
-            "pairs": [
-                {
-                    "a": p.a,
-                    "b": p.b,
-                    "quantity": p.quantity,
-                    "p_improvement": p.p_improvement[0],
-                    "p_improvement_low": _finite_or_none(p.p_improvement[1]),
-                    "p_improvement_high": _finite_or_none(p.p_improvement[2]),
-                    "mann_whitney_p": p.p_value,
-                    "verdict": p.decisive(self.confidence),
-                    "power": p.power.__dict__ if p.power is not None else None,
-                }
-                for p in self.pairs
-            ],
-            "left_out": self.left_out,
-            "group_by": self.group_by,
-            "split": self.splits,
-            "published": self.published,
-            "published_caveat": PUBLISHED_CAVEAT if self.published else None,
-        }
 
 
 # --- choosing the runs ----------------------------------------------------------------------

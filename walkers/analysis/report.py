@@ -11,7 +11,6 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import matplotlib
 import numpy as np
@@ -21,19 +20,16 @@ import matplotlib.pyplot as plt  # noqa: E402
 
 from walkers.analysis import arms, stats  # noqa: E402
 from walkers.analysis.power import MAX_SEEDS, TARGET  # noqa: E402
-from walkers.tracking import ENV_STEPS, GRADIENT_STEPS  # noqa: E402
-
-if TYPE_CHECKING:
-    from walkers.analysis.comparison import AlgoResult, Comparison, PairResult
+from walkers.analysis.results import (  # noqa: E402
+    AXIS_NAMES,
+    PUBLISHED_CAVEAT,
+    AlgoResult,
+    Comparison,
+    PairResult,
+)
+from walkers.tracking import ENV_STEPS  # noqa: E402
 
 QUANTITY_NAMES = {"score": "final return", "auc": "AUC (rate of learning)"}
-AXIS_NAMES = {ENV_STEPS: "env steps", GRADIENT_STEPS: "gradient steps"}
-#: The line printed with published reference figures.
-PUBLISHED_CAVEAT = (
-    "Published figures, not measured here: other code, budgets, seed counts and measures (see "
-    "each source). Figures from another env version than the one measured are guides, not "
-    "targets: Gymnasium's v5 MuJoCo envs changed the physics."
-)
 
 
 def _num(x: float) -> str:

@@ -1,0 +1,20 @@
+"""The names walkers gives things in MLflow: run statuses, tags, the axes a run's steps count.
+Plain constants: importing them imports nothing else (no MLflow)."""
+
+from __future__ import annotations
+
+#: Statuses a run ends with.
+FINISHED, FAILED, KILLED = "FINISHED", "FAILED", "KILLED"
+#: Tag that marks runs which are not training runs (reports, sweep parents, datasets).
+KIND_TAG = "walkers.kind"
+#: Run tag naming what the step of a run's metrics counts; runs without it count env steps.
+X_AXIS_TAG = "walkers.x_axis"
+ENV_STEPS, GRADIENT_STEPS = "env_steps", "gradient_steps"
+#: Tag of a run its pruner stopped early (a sweep trial; ``walkers.compare`` leaves it out).
+PRUNED_TAG = "walkers.pruned_at_step"
+#: Tag: why a run was ended by someone else than its job (its driver or sweeper, on the way out).
+END_REASON_TAG = "walkers.end_reason"
+#: Tag: what identifies a multirun job across attempts (``job_key``, set by walkers.train).
+JOB_KEY_TAG = "walkers.job_key"
+#: Tag: the last step whose metrics reached MLflow (a resumed run logs only steps after it).
+LOGGED_THROUGH_TAG = "walkers.logged_through"

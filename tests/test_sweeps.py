@@ -13,7 +13,7 @@ from optuna.trial import TrialState
 
 from tests.conftest import all_runs, one_line_error, run_cli
 from walkers.errors import ConfigError
-from walkers.tuning.sweeper import record_outcome, sweep_direction
+from walkers.tuning.objective import record_outcome, sweep_direction
 from walkers.tuning.trial import TrialReporter
 
 #: A trial of the pendulum study at test size.

@@ -11,8 +11,8 @@ from optuna.trial import TrialState
 
 from tests.conftest import all_runs, one_line_error, run_cli
 from walkers.errors import ConfigError
+from walkers.tuning.objective import check_objective
 from walkers.tuning.studies import redacted
-from walkers.tuning.sweeper import check_objective
 
 STUDY = "pendulum_tiny"
 #: A trial of the pendulum study at its smallest: two evaluations, no pruning (before warm-up).

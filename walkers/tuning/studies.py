@@ -34,6 +34,7 @@ from sqlalchemy.engine import make_url
 from sqlalchemy.exc import OperationalError
 
 from walkers.errors import ConfigError
+from walkers.tuning import optuna_internals
 
 log = logging.getLogger("walkers")
 
@@ -237,9 +238,10 @@ class Heartbeats:
         if not self.interval:
             return
         for trial in running:
-            if trial._trial_id not in self._seen:
-                self._seen.add(trial._trial_id)
-                self.storage.record_heartbeat(trial._trial_id)
+            key = optuna_internals.trial_id(trial)
+            if key not in self._seen:
+                self._seen.add(key)
+                self.storage.record_heartbeat(key)
 
     def remove(self, trial_id: int) -> None:
         with self._lock:

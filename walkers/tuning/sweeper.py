@@ -1,4 +1,6 @@
-"""The Optuna sweeper behind ``python -m walkers.train -m sweeps=NAME``.
+"""The Optuna sweeper behind ``python -m walkers.train -m sweeps=NAME`` (the Hydra plugin; what a
+study optimizes and how a trial is scored: :mod:`walkers.tuning.objective`; its MLflow runs:
+:mod:`walkers.tuning.study_runs`; Optuna internals: :mod:`walkers.tuning.optuna_internals`).
 
 Built on hydra-optuna-sweeper 1.4.0rc3 (its search-space syntax, samplers and trial ->
 overrides) with what RL tuning needs and that plugin lacks:
@@ -39,30 +41,25 @@ overrides) with what RL tuning needs and that plugin lacks:
 from __future__ import annotations
 
 import logging
-import math
 import sys
 import time
-from collections.abc import Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 import optuna
-from hydra.core.utils import JobReturn
 from hydra.utils import instantiate
 from hydra_plugins.hydra_optuna_sweeper._impl import (
     OptunaSweeperImpl,
     create_params_from_overrides,
 )
-from hydra_plugins.hydra_optuna_sweeper.config import Direction
 from omegaconf import DictConfig, OmegaConf
-from optuna.study import StudyDirection
 from optuna.trial import TrialState
 
 from walkers import tracking
 from walkers.errors import ConfigError
-from walkers.metrics import MAXIMIZE, MINIMIZE, metric_direction
-from walkers.tracking.hydra_callbacks import stop_remote_jobs
+from walkers.tuning.objective import check_objective, record_outcome, sweep_direction, trials_done
+from walkers.tuning.optuna_internals import stored_trial, trial_id
 from walkers.tuning.studies import (
     Heartbeats,
     check_passed_by_reference,
@@ -77,6 +74,13 @@ from walkers.tuning.studies import (
     running,
     study_lock,
     study_uid,
+)
+from walkers.tuning.study_runs import (
+    end_jobs_runs,
+    log_best,
+    log_trial_outcome,
+    open_parent_run,
+    open_trial_run,
 )
 from walkers.tuning.trial import PRUNED_AT
 
@@ -96,124 +100,6 @@ def absolute_storage(storage: str | None) -> str | None:
     if storage and storage.startswith("sqlite:///") and not storage.startswith("sqlite:////"):
         return f"sqlite:///{Path(storage.removeprefix('sqlite:///')).resolve()}"
     return storage
-
-
-# --- the direction --------------------------------------------------------------------------
-def given_direction(direction: Any) -> str | None:
-    """The direction a sweep file or the command line set, or None where it is left unset.
-
-    Unset is ``null``, or hydra-optuna-sweeper's own default for a sweep that does not mention
-    it: the enum ``Direction.minimize`` (what a yaml file or command line sets is a string).
-    """
-    if direction is None or isinstance(direction, Direction):
-        return None
-    if isinstance(direction, Sequence) and not isinstance(direction, str):
-        if len(direction) != 1:
-            raise ConfigError(
-                f"hydra.sweeper.direction={list(direction)} is not allowed: a walkers sweep "
-                "optimizes one metric (optimized_metric); leave direction null"
-            )
-        (direction,) = direction
-    direction = direction.name if isinstance(direction, Direction) else str(direction)
-    if direction not in (MAXIMIZE, MINIMIZE):
-        raise ConfigError(
-            f"hydra.sweeper.direction={direction!r} is not allowed: must be null "
-            f"(it follows optimized_metric), {MAXIMIZE} or {MINIMIZE}"
-        )
-    return direction
-
-
-def sweep_direction(metric: str, direction: Any) -> str:
-    """The study's direction: ``metric``'s; a direction the sweep sets itself must agree."""
-    wanted = metric_direction(metric)
-    given = given_direction(direction)
-    if given is not None and given != wanted:
-        raise ConfigError(
-            f"hydra.sweeper.direction={given} contradicts optimized_metric={metric}, which is "
-            f"{wanted}d: leave direction null (it follows the metric)"
-        )
-    return wanted
-
-
-def check_objective(study: optuna.Study, storage: str | None, metric: str) -> None:
-    """A resumed study keeps its metric and direction: scores of another kind do not compare.
-
-    A study from before the metric was stored is checked by its direction alone.
-    """
-    stored = study.user_attrs.get(METRIC_ATTR)
-    stored_direction, direction = study.direction.name.lower(), metric_direction(metric)
-    if stored_direction != direction or stored not in (None, metric):
-        raise ConfigError(
-            f"optimized_metric={metric} ({direction}d) cannot continue study "
-            f"{study.study_name!r} in {storage}: it {stored_direction}s {stored or 'its metric'}; "
-            "name a new study with hydra.sweeper.study_name=<name>"
-        )
-    if stored is None:
-        study.set_user_attr(METRIC_ATTR, metric)
-
-
-# --- scoring a trial ------------------------------------------------------------------------
-def worst_finite(study: optuna.Study) -> float:
-    """The worst score among completed trials (the floor of the range if there is none)."""
-    complete = study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,))
-    values = [t.value for t in complete if t.value is not None and math.isfinite(t.value)]
-    maximize = study.direction == StudyDirection.MAXIMIZE
-    if not values:
-        return -sys.float_info.max if maximize else sys.float_info.max
-    return min(values) if maximize else max(values)
-
-
-def infinitely_bad(study: optuna.Study) -> float:
-    """The infinity that ranks below every score: -inf when maximizing, inf when minimizing."""
-    return -math.inf if study.direction == StudyDirection.MAXIMIZE else math.inf
-
-
-def trial_value(results: Sequence[JobReturn]) -> float:
-    """A trial's value: its job's, or the mean over its seeds' jobs (NaN if any diverged).
-    Re-raises the first exception a job raised."""
-    return float(sum(float(r.return_value) for r in results) / len(results))
-
-
-def record_outcome(
-    study: optuna.Study, trial: optuna.Trial, results: Sequence[JobReturn]
-) -> Exception | None:
-    """Tell the study how a trial's jobs (one per seed) ended; returns a job's exception if one
-    failed.
-
-    Pruned (a job set ``pruned_at_step``) -> PRUNED; NaN or an infinitely *good* score -> the
-    worst finite score so far (a diverged configuration is bad, not an error); an infinitely
-    *bad* score (``final/steps_to_threshold`` of a trial that never reached the threshold) is
-    told as it is: Optuna ranks it below every finite score; an exception -> FAIL.
-    """
-    try:
-        value = trial_value(results)  # re-raises what a job raised
-    except Exception as e:
-        study.tell(trial, state=TrialState.FAIL, skip_if_finished=True)
-        log.warning("trial %d failed: %s", trial.number, e)
-        return e
-    (frozen,) = [t for t in study.get_trials(deepcopy=False) if t.number == trial.number]
-    if frozen.state.is_finished():  # another sweeper failed it as stale meanwhile
-        log.warning("trial %d was already told %s elsewhere", trial.number, frozen.state.name)
-    elif PRUNED_AT in frozen.user_attrs:
-        study.tell(trial, state=TrialState.PRUNED)
-    elif value == infinitely_bad(study):
-        log.warning("trial %d scored %s: ranked below every finite score", trial.number, value)
-        study.tell(trial, value)
-    elif not math.isfinite(value):
-        worst = worst_finite(study)
-        log.warning(
-            "trial %d diverged (%s): scored %s, the worst so far", trial.number, value, worst
-        )
-        trial.set_user_attr("diverged", True)
-        study.tell(trial, worst)
-    else:
-        study.tell(trial, value)
-    return None
-
-
-def trials_done(study: optuna.Study) -> int:
-    """Trials that ended (complete, pruned, or failed and not retried)."""
-    return len([t for t in counted_trials(study.get_trials(deepcopy=False)) if t.state in DONE])
 
 
 class PruningOptunaSweeper(OptunaSweeperImpl):
@@ -304,7 +190,7 @@ class PruningOptunaSweeper(OptunaSweeperImpl):
                 study.sampler = self.sampler = self._make_sampler(seed_offset=len(trials))
             claimed = [study.ask() for _ in range(max(0, min(self.n_jobs, room)))]
             for trial in claimed:  # beaten before the lock is let go: never without a heartbeat
-                beats.add(trial._trial_id)
+                beats.add(trial_id(trial))
         return claimed
 
     def _log_size(self, study: optuna.Study, metric: str) -> None:
@@ -335,7 +221,7 @@ class PruningOptunaSweeper(OptunaSweeperImpl):
         overrides = [
             f"trial.study={hydra_quoted(study.study_name)}",
             f"trial.storage={job_storage(self.storage) or 'null'}",  # a secret: by reference
-            f"trial.id={trial._trial_id}",
+            f"trial.id={trial_id(trial)}",
             f"trial.number={trial.number}",
             f"job_key={hydra_quoted(key)}",
         ]
@@ -398,10 +284,10 @@ class PruningOptunaSweeper(OptunaSweeperImpl):
         died (the retry inherits ``pruned_at_step``): those are told PRUNED, not run again."""
         to_run = []
         for trial in trials:
-            if PRUNED_AT in study._storage.get_trial(trial._trial_id).user_attrs:
+            if PRUNED_AT in stored_trial(study, trial).user_attrs:
                 log.info("trial %d repeats a pruned trial: PRUNED", trial.number)
                 study.tell(trial, state=TrialState.PRUNED)
-                beats.remove(trial._trial_id)
+                beats.remove(trial_id(trial))
             else:
                 to_run.append(trial)
         return to_run
@@ -426,7 +312,7 @@ class PruningOptunaSweeper(OptunaSweeperImpl):
                 params = self._configure_trials(trials, space, fixed, fixed_overrides)
                 for trial, job, trial_run in zip(trials, params, trial_runs, strict=True):
                     nest_under = (trial_run or parent) and (trial_run or parent).run_id
-                    frozen = study._storage.get_trial(trial._trial_id)
+                    frozen = stored_trial(study, trial)
                     for seed in seeds:
                         keys.append(self.job_key(frozen, seed))
                         overrides = self._job_overrides(study, trial, nest_under, keys[-1], seed)
@@ -438,14 +324,14 @@ class PruningOptunaSweeper(OptunaSweeperImpl):
                 for trial in trials:
                     log.warning("trial %d did not finish: FAIL", trial.number)
                     study.tell(trial, state=TrialState.FAIL, skip_if_finished=True)
-                    beats.remove(trial._trial_id)
+                    beats.remove(trial_id(trial))
                 raise
             self.job_idx += len(returns)
             failures = []
             for i, trial in enumerate(trials):
                 results = returns[i * len(seeds) : (i + 1) * len(seeds)]
                 failures.append(patiently(record_outcome, study, trial, results))
-                beats.remove(trial._trial_id)
+                beats.remove(trial_id(trial))
             for trial, trial_run in zip(trials, trial_runs, strict=True):  # all told first
                 if trial_run is not None:
                     try:
@@ -482,100 +368,6 @@ class PruningOptunaSweeper(OptunaSweeperImpl):
         log.info("written to %s", path)
         if parent is not None:
             log_best(parent, study, best, path)
-
-
-def end_jobs_runs(client, experiment: str, job_keys: list[str], error: BaseException) -> None:
-    """A batch whose launcher failed (a job's retries ran out on a cluster, Ctrl-C of the
-    sweeper): its jobs still out there are stopped (a Ray driver's tasks end with it) and their
-    runs left RUNNING are ended, KILLED after Ctrl-C, else FAILED, with the reason as a tag."""
-    stop_remote_jobs()
-    status = tracking.KILLED if isinstance(error, KeyboardInterrupt) else tracking.FAILED
-    reason = f"its batch's launch ended: {type(error).__name__}: {error}"
-    try:
-        for key in job_keys:
-            query = tracking.tags_equal({tracking.JOB_KEY_TAG: key})
-            for run_id in tracking.end_running(client, experiment, query, status, reason):
-                log.warning("run %s of job %s was left RUNNING: %s", run_id, key, status)
-    except Exception as e:  # the launcher's error is the one to report
-        log.error("could not end the runs of the failed batch: %s", e)
-
-
-def log_best(
-    parent: tracking.Tracker, study: optuna.Study, best: optuna.trial.FrozenTrial, results: Path
-) -> None:
-    """The best trial on the study's parent run, in forms a resumed study may change.
-
-    MLflow params never change once logged, so the best values are tags (``best.<param>``) and
-    metrics (``best_value``, ``best_trial``, at step = trials done: their history is how the
-    best improved as the study grew), plus the ``optimization_results.yaml`` artifact.
-    """
-    parent.set_tags({f"best.{k}": v for k, v in best.params.items()})
-    parent.log_metrics(
-        {"best_value": best.value, "best_trial": best.number}, step=trials_done(study)
-    )
-    parent.log_artifact(results)
-    log.info("MLflow parent run: %s", parent.url)
-
-
-def open_trial_run(
-    parent: tracking.Tracker | None, study: optuna.Study, trial: optuna.Trial
-) -> tracking.Tracker | None:
-    """A trial's own MLflow run (``seeds_per_trial`` > 1): its parameters and outcome, nested
-    under the study's run, its seeds' runs nested under it. A retry of a dead sweeper's trial
-    takes over the run of the trial it retries (as its seeds' jobs continue theirs)."""
-    if parent is None:
-        return None
-    original = original_number(study._storage.get_trial(trial._trial_id))
-    tags = {
-        tracking.KIND_TAG: "trial",
-        STUDY_TAG: study.study_name,
-        "walkers.trial": str(trial.number),
-        ORIGINAL_TRIAL_TAG: str(original),
-        "mlflow.parentRunId": parent.run_id,
-    }
-    experiment = parent.client.get_experiment(parent.experiment_id).name
-    name = f"{study.study_name}-trial{trial.number}"
-    if original == trial.number:  # a first attempt: a run of its own
-        return tracking.Tracker.start(parent.client, experiment, name, tags, parent.spool_dir)
-    query = tracking.tags_equal(  # a retry: the run of the trial it repeats
-        {tracking.KIND_TAG: "trial", STUDY_TAG: study.study_name, ORIGINAL_TRIAL_TAG: original}
-    )
-    return tracking.Tracker.reopen_or_start(
-        parent.client, experiment, query, name, tags, parent.spool_dir
-    )
-
-
-def log_trial_outcome(
-    run: tracking.Tracker, study: optuna.Study, trial: optuna.Trial, metric: str
-) -> None:
-    """The trial's sampled parameters, state and value (the mean over its seeds) on its run."""
-    frozen = study._storage.get_trial(trial._trial_id)
-    run.log_params({k: str(v) for k, v in frozen.params.items()})
-    run.set_tags({"walkers.trial_state": frozen.state.name})
-    if frozen.value is not None:
-        run.log_metrics({metric: frozen.value}, step=0)
-
-
-def open_parent_run(
-    client, config: DictConfig, study: optuna.Study, storage: str | None
-) -> tracking.Tracker:
-    """The study's MLflow parent run: reopened when a study is resumed, else created."""
-    tags = {
-        tracking.KIND_TAG: "study",
-        STUDY_TAG: study.study_name,
-        "optuna.storage": str(redacted(storage)),
-        "walkers.optimized_metric": config.optimized_metric,
-        "walkers.direction": study.direction.name.lower(),
-    }
-    query = tracking.tags_equal({tracking.KIND_TAG: "study", STUDY_TAG: study.study_name})
-    return tracking.Tracker.reopen_or_start(
-        client,
-        config.tracking.experiment,
-        query,
-        f"study-{study.study_name}",
-        tags,  # also given to a study's run from before these tags existed
-        Path(config.work_dir) / "spool",
-    )
 
 
 @contextmanager

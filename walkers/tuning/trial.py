@@ -24,6 +24,7 @@ from optuna.study import StudyDirection
 from sqlalchemy.exc import SQLAlchemyError
 
 from walkers.errors import ConfigError
+from walkers.tuning.optuna_internals import stored_trial, trial_by_id, trial_id
 from walkers.tuning.studies import STORAGE_ENV, open_storage
 
 log = logging.getLogger("walkers")
@@ -78,7 +79,7 @@ class TrialReporter:
         study.pruner = make_pruner(pruner_cfg, maximize)
         #: +1, or -1 in a minimizing study: the sign of the eval return as the pruner sees it
         self.sign = 1.0 if maximize else -1.0
-        self.trial = optuna.trial.Trial(study, trial_cfg.id)
+        self.trial = trial_by_id(study, trial_cfg.id)
         self.seed, self.seeds = seed, seeds
         self.pruned_at: int | None = None
 
@@ -108,7 +109,7 @@ class TrialReporter:
 
     def _seed_evaluation(self, step: int, value: float) -> bool:
         self.trial.set_user_attr(f"walkers.eval.{step}.{self.seed}", value)
-        attrs = self.trial.study._storage.get_trial(self.trial._trial_id).user_attrs
+        attrs = stored_trial(self.trial.study, self.trial).user_attrs
         if PRUNED_AT in attrs:  # another seed's job completed a set and the pruner said stop
             self.pruned_at = step
             log.info("trial %d pruned (at step %d): seed %d stops", self.trial.number,
@@ -119,5 +120,5 @@ class TrialReporter:
             return False  # the other seeds have not evaluated this step yet
         mean = sum(values) / len(values)
         # a fresh view of the trial: the other seeds' jobs have reported steps since it was read
-        self.trial = optuna.trial.Trial(self.trial.study, self.trial._trial_id)
+        self.trial = trial_by_id(self.trial.study, trial_id(self.trial))
         return math.isfinite(mean) and self._report(step, mean)

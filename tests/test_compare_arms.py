@@ -10,13 +10,10 @@ from omegaconf import OmegaConf
 
 from tests.conftest import compose_cfg
 from walkers.analysis import arms
-from walkers.analysis.comparison import (
-    SeedRun,
-    compare_groups,
-    mlflow_key,
-    published_figures,
-)
+from walkers.analysis.comparison import compare_groups, mlflow_key
 from walkers.analysis.report import PUBLISHED_CAVEAT, markdown
+from walkers.analysis.results import SeedRun
+from walkers.analysis.selection import published_figures
 from walkers.cli import group_by_as_list
 
 TD3 = {

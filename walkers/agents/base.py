@@ -2,7 +2,7 @@
 
 An agent never sees Hydra, MLflow or the environment loop. It is built from plain
 hyperparameters plus the environment's shapes (``obs_dim``, ``action_low``, ``action_high``),
-and the trainer drives it with four calls per env step:
+and the trainer drives it with three calls per env step:
 
     action = agent.act(obs, explore=True)
     agent.observe(Transition(obs, action, reward, next_obs, terminated, truncated))
@@ -11,6 +11,9 @@ and the trainer drives it with four calls per env step:
 Offline agents (``offline = True``, e.g. the Decision Transformer) learn from a dataset instead:
 the trainer calls only ``update`` in a loop. Sequence policies also see episode boundaries and
 rewards while they act (``begin_episode``, ``record_reward``); the others ignore both.
+
+Stable-Baselines3's twins (``impl=sb3``, :mod:`walkers.agents.sb3_twin`) learn inside SB3's
+own loop: of this interface they act greedily (evaluations, videos) and checkpoint.
 
 ``update`` returns detached scalar tensors (not floats) so the hot loop never forces a
 device sync; the trainer converts them only when it logs.

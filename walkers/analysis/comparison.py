@@ -21,7 +21,6 @@ from __future__ import annotations
 import logging
 import math
 import re
-from collections import Counter
 from itertools import combinations
 from pathlib import Path
 
@@ -40,137 +39,23 @@ from walkers.analysis.arms import (
 from walkers.analysis.power import pair_power
 from walkers.analysis.report import verdict, write_report
 from walkers.analysis.results import (
-    AXIS_NAMES,
     AlgoResult,
     Comparison,
     PairResult,
     SeedRun,
 )
+from walkers.analysis.selection import (
+    CURVE_METRIC,
+    load_seed_runs,
+    published_figures,
+    select_runs,
+)
 from walkers.errors import ConfigError
-from walkers.tracking import ENV_STEPS, GRADIENT_STEPS, KIND_TAG
+from walkers.tracking import KIND_TAG
 
 log = logging.getLogger("walkers")
 
-CURVE_METRIC = "eval/return_mean"
 SCORES = ("final/return_mean", "final/return_last10", "final/auc")
-
-
-def x_axis(run) -> str:
-    return run.data.tags.get(tracking.X_AXIS_TAG, ENV_STEPS)
-
-
-# --- choosing the runs ----------------------------------------------------------------------
-
-
-def _budget(run) -> int | None:
-    value = run.data.params.get("total_steps")
-    return int(value) if value is not None and value.isdigit() else None
-
-
-def _runs(n: int) -> str:
-    return f"{n} run" if n == 1 else f"{n} runs"
-
-
-def _most_common(values) -> object:
-    return Counter(values).most_common(1)[0][0]
-
-
-def _listed(counts: Counter, key: str) -> str:
-    return ", ".join(f"{key}={value}: {n}" for value, n in sorted(counts.items(), key=str))
-
-
-def select_runs(
-    runs: list,
-    env_id: str,
-    algos: list[str],
-    budget: int | None,
-    gradient_budget: int | None = None,
-    dataset: str | None = None,
-):
-    """The comparable training runs of ``algos`` on ``env_id``, and notes on the rest.
-
-    Returns ``(chosen runs, budgets, notes)``: ``budgets`` maps each x-axis to the budget its runs
-    share, the given one (``budget`` for env steps, ``gradient_budget`` for offline runs) or else
-    the most common among the finished runs. Offline runs also share one dataset (``dataset``, or
-    the most common).
-    """
-    notes: list[str] = []
-    training = [r for r in runs if r.data.tags.get(KIND_TAG, "train") == "train"]
-    wanted = [r for r in training if not algos or r.data.tags.get("algo") in algos]
-    other_envs = Counter(r.data.tags.get("env") for r in wanted if r.data.tags.get("env") != env_id)
-    if other_envs:
-        listed = ", ".join(f"{env}: {n}" for env, n in sorted(other_envs.items(), key=str))
-        notes.append(f"{_runs(sum(other_envs.values()))} on other envs ({listed})")
-    on_env = [r for r in wanted if r.data.tags.get("env") == env_id]
-    unfinished = [r for r in on_env if r.info.status != tracking.FINISHED]
-    for r in unfinished:
-        notes.append(
-            f"run {r.info.run_id} ({r.data.tags.get('algo')}, seed {r.data.tags.get('seed')}) "
-            f"is {r.info.status}"
-        )
-    pruned = [r for r in on_env if tracking.PRUNED_TAG in r.data.tags]
-    if pruned:
-        notes.append(f"{_runs(len(pruned))} of sweep trials stopped early by pruning")
-    finished = [
-        r
-        for r in on_env
-        if r.info.status == tracking.FINISHED and tracking.PRUNED_TAG not in r.data.tags
-    ]
-    offline = [r for r in finished if x_axis(r) == GRADIENT_STEPS]
-    if offline:
-        dataset = dataset or _most_common(r.data.tags.get("dataset") for r in offline)
-        other = Counter(r.data.tags.get("dataset") for r in offline)
-        del other[dataset]
-        if other:
-            notes.append(
-                f"{_runs(sum(other.values()))} trained on another dataset than {dataset} "
-                f"({_listed(other, 'dataset')})"
-            )
-        finished = [
-            r for r in finished if x_axis(r) == ENV_STEPS or r.data.tags.get("dataset") == dataset
-        ]
-    chosen, budgets = [], {}
-    for axis, given in ((ENV_STEPS, budget), (GRADIENT_STEPS, gradient_budget)):
-        on_axis = [r for r in finished if x_axis(r) == axis]
-        if not on_axis:
-            continue
-        budgets[axis] = given if given is not None else _most_common(_budget(r) for r in on_axis)
-        other = Counter(_budget(r) for r in on_axis if _budget(r) != budgets[axis])
-        if other:
-            notes.append(
-                f"{_runs(sum(other.values()))} with another budget than {budgets[axis]} "
-                f"{AXIS_NAMES[axis]} ({_listed(other, 'total_steps')})"
-            )
-        chosen += [r for r in on_axis if _budget(r) == budgets[axis]]
-    return chosen, budgets, notes
-
-
-def load_seed_runs(client, runs: list, threshold: float) -> dict[str, SeedRun]:
-    """Eval curves and summaries of ``runs`` by run id (runs without evals are not in it)."""
-    loaded: dict[str, SeedRun] = {}
-    for run in runs:
-        steps, values = tracking.metric_history(client, run.info.run_id, CURVE_METRIC)
-        if not steps:
-            continue
-        loaded[run.info.run_id] = SeedRun(
-            run_id=run.info.run_id,
-            algo=run.data.tags["algo"],
-            seed=run.data.tags.get("seed", "?"),
-            steps=np.asarray(steps),
-            returns=np.asarray(values),
-            summary=stats.run_summary(steps, values, threshold),
-            x_axis=x_axis(run),
-            dataset=run.data.tags.get("dataset"),
-            normalized_score=run.data.metrics.get("final/normalized_score"),
-        )
-    return loaded
-
-
-def published_figures(env_cfg, algorithms: list[str]) -> list[dict]:
-    """The env's published reference figures (``published:`` in its config) for ``algorithms``,
-    in their order."""
-    figures = [dict(f) for f in (env_cfg.get("published") or [])]
-    return [f for a in algorithms for f in figures if f.get("algo") == a]
 
 
 # --- the statistics -------------------------------------------------------------------------

@@ -16,8 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from walkers.analysis.comparison import AlgoResult, Comparison
 from walkers.analysis.power import analyse
+from walkers.analysis.results import AlgoResult, Comparison
 from walkers.errors import ConfigError
 
 #: Fewer pilot seeds than this in an arm give no usable estimate of its spread.

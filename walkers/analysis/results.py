@@ -66,6 +66,11 @@ class AlgoResult:
         return self.runs[0].x_axis
 
     @property
+    def label(self) -> str:
+        """The arm's name, and for an offline one the dataset it learned from."""
+        return f"{self.algo} (offline, {self.dataset})" if self.x_axis != ENV_STEPS else self.algo
+
+    @property
     def dataset(self) -> str | None:
         return self.runs[0].dataset
 

@@ -229,10 +229,6 @@ class Tracker:
             log.warning("could not upload %s to MLflow (kept locally): %s", path, e)
             return False
 
-    def download_artifact(self, artifact_path: str, dst_dir) -> Path:
-        Path(dst_dir).mkdir(parents=True, exist_ok=True)
-        return Path(self.client.download_artifacts(self.run_id, artifact_path, str(dst_dir)))
-
     def end(self, status: str) -> None:
         """Flush and set the final status; metrics MLflow never took go to a local jsonl file."""
         if self._monitor is not None:

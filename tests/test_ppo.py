@@ -248,7 +248,7 @@ def test_reported_training_returns_are_the_envs_own(ppo_run):
 
 
 def test_evaluate_replays_the_final_evaluation_with_the_frozen_statistics(ppo_run, tmp_path):
-    from walkers.training.playback import evaluate
+    from walkers.training.policy_replay import evaluate
 
     run = ppo_run["run"]
     final = ppo_run["client"].get_metric_history(run.info.run_id, "eval/return_mean")[-1]

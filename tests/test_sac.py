@@ -20,7 +20,7 @@ from walkers.training import checkpoints
 from walkers.training.checkpoints import agent_from_checkpoint
 from walkers.training.collection import collect
 from walkers.training.envs import make_env
-from walkers.training.playback import evaluate
+from walkers.training.policy_replay import evaluate
 
 SMALL = dict(batch_size=16, learning_starts=20, hidden_sizes=[16, 16], buffer_size=1000)
 OBS = 3

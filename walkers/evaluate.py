@@ -3,7 +3,7 @@
     python -m walkers.evaluate run_id=<id> checkpoint=best episodes=10 video=true out=<dir>
     python -m walkers.evaluate checkpoint=path/to/last.pt render=human
 
-The replay itself is :mod:`walkers.training.playback`.
+The replay itself is :mod:`walkers.training.policy_replay`.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from omegaconf import DictConfig
 
 from walkers import CONF_DIR
 from walkers.cli import exit_on_bad_overrides, or_exit
-from walkers.training.playback import evaluate
+from walkers.training.policy_replay import evaluate
 
 
 @hydra.main(config_path=str(CONF_DIR), config_name="evaluate")

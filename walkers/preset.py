@@ -3,7 +3,7 @@
     python -m walkers.preset study=td3_walker2d
     python -m walkers.train experiment=td3_walker2d_tuned    # then train with it
 
-The export itself is :mod:`walkers.tuning.preset`.
+The export itself is :mod:`walkers.tuning.best_trial_preset`.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from omegaconf import DictConfig
 
 from walkers import CONF_DIR
 from walkers.cli import exit_on_bad_overrides, or_exit
-from walkers.tuning.preset import write_preset
+from walkers.tuning.best_trial_preset import write_preset
 
 
 @hydra.main(config_path=str(CONF_DIR), config_name="preset")

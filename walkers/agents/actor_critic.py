@@ -25,7 +25,6 @@ from __future__ import annotations
 import copy
 import logging
 from collections.abc import Sequence
-from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -36,31 +35,11 @@ from walkers.agents.base import Agent, Transition, resolve_device
 from walkers.agents.health import NonFiniteGuard, guarded_step
 from walkers.agents.networks import EnsembleActor, make_critic, soft_update
 from walkers.agents.noise import GaussianNoise
+from walkers.agents.population import Member
 from walkers.data.replay import Batch, ReplayBuffer
 from walkers.seeding import numpy_rng, stream_seeds
 
 log = logging.getLogger("walkers")
-
-
-@dataclass
-class Member:
-    """What one member (one seed) has of its own besides its slice of the networks."""
-
-    rng: np.random.Generator  # uniform warm-up actions and exploration noise
-    noise: GaussianNoise
-    buffer: ReplayBuffer
-
-    def state_dict(self, with_buffer: bool) -> dict:
-        return {
-            "rng": self.rng.bit_generator.state,
-            "noise": self.noise.state_dict(),
-            "buffer": self.buffer.state_dict(with_data=with_buffer),
-        }
-
-    def load_state_dict(self, state: dict) -> None:
-        self.rng.bit_generator.state = state["rng"]
-        self.noise.load_state_dict(state["noise"])
-        self.buffer.load_state_dict(state["buffer"])
 
 
 class ActorCritic(Agent):

@@ -3,8 +3,8 @@
 An :class:`~walkers.agents.actor_critic.ActorCritic` with ``population=K`` holds K members along
 the leading dimension of every network, optimizer moment and guard counter (the critics C per
 member; which parts, and each member's slice of them, the agent declares in ``member_cuts``), and
-a :class:`~walkers.agents.actor_critic.Member` each. A single agent is the same with
-K = 1, so member ``i`` cut out (:func:`member_state_dict`) is exactly a single agent's
+a :class:`Member` each (its RNG, exploration noise and replay buffer). A single agent is
+the same with K = 1, so member ``i`` cut out (:func:`member_state_dict`) is exactly a single agent's
 ``state_dict()``, and a population's is the list of its members'. A member's state loads into an
 ordinary agent (``walkers.evaluate``, ``walkers.collect``, ``resume=`` to continue it alone) or
 back into a population (:func:`load_member_state_dict`, ``resume=[id,id,...]``).
@@ -12,6 +12,7 @@ back into a population (:func:`load_member_state_dict`, ``resume=[id,id,...]``).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
@@ -19,13 +20,36 @@ import torch
 
 from walkers.agents.base import Agent, Transition
 from walkers.agents.health import NonFiniteGuard
+from walkers.agents.noise import GaussianNoise
+from walkers.data.replay import ReplayBuffer
+
+
+@dataclass
+class Member:
+    """What one member (one seed) has of its own besides its slice of the networks."""
+
+    rng: np.random.Generator  # uniform warm-up actions and exploration noise
+    noise: GaussianNoise
+    buffer: ReplayBuffer
+
+    def state_dict(self, with_buffer: bool) -> dict:
+        return {
+            "rng": self.rng.bit_generator.state,
+            "noise": self.noise.state_dict(),
+            "buffer": self.buffer.state_dict(with_data=with_buffer),
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        self.rng.bit_generator.state = state["rng"]
+        self.noise.load_state_dict(state["noise"])
+        self.buffer.load_state_dict(state["buffer"])
 
 
 class Population(Protocol):
     """What member I/O needs of an agent with members (an
     :class:`~walkers.agents.actor_critic.ActorCritic`, which imports this module)."""
 
-    members: list  # each member's own part: rng, noise, buffer (state_dict / load_state_dict)
+    members: list[Member]
     guard: NonFiniteGuard
     actor: torch.nn.Module
     device: torch.device

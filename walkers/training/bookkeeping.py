@@ -65,7 +65,10 @@ GRADIENT_STEP_AXIS = Axis(GRADIENT_STEPS, "perf/gradient_steps_per_s", "grad ste
 
 
 @dataclass
-class TrainerSettings:
+class RunSettings:
+    """What a run's book takes from its config: the budget, the schedules of evaluations,
+    checkpoints, logs and videos, the seed, the threshold, the divergence patience."""
+
     total_steps: int
     eval_every: int
     eval_episodes: int
@@ -99,7 +102,7 @@ class RunBook:
         env: gym.Env | None,
         eval_env: gym.Env,
         tracker: Tracker,
-        settings: TrainerSettings,
+        settings: RunSettings,
         checkpoint_dir: Path,
         checkpoint_extra: dict | None = None,
         video_env: gym.Env | None = None,

@@ -32,7 +32,7 @@ from walkers.errors import CheckpointError, ConfigError
 from walkers.training import checkpoints
 from walkers.training.checkpoints import agent_from_checkpoint
 from walkers.training.envs import make_env
-from walkers.training.playback import fetch_checkpoint
+from walkers.training.policy_replay import fetch_checkpoint
 
 log = logging.getLogger("walkers")
 

@@ -24,7 +24,7 @@ from walkers.training.bookkeeping import (
     ENV_STEP_AXIS,
     GRADIENT_STEP_AXIS,
     RunBook,
-    TrainerSettings,
+    RunSettings,
 )
 from walkers.training.envs import env_spaces, make_env
 from walkers.training.evaluation import per_target_return, with_normalized_score
@@ -161,7 +161,7 @@ def _book(cfg: DictConfig, tracker, agent, env, eval_env, axis=ENV_STEP_AXIS, vi
         env,
         eval_env,
         tracker,
-        trainer_settings(cfg),
+        run_settings(cfg),
         checkpoint_dir=prepare_run_dir(cfg, tracker) / "checkpoints",
         checkpoint_extra={"config": shareable(cfg)},
         video_env=video_env,
@@ -197,8 +197,8 @@ def member_config(cfg: DictConfig, i: int) -> DictConfig:
     return member
 
 
-def trainer_settings(cfg: DictConfig) -> TrainerSettings:
-    return TrainerSettings(
+def run_settings(cfg: DictConfig) -> RunSettings:
+    return RunSettings(
         total_steps=cfg.total_steps,
         eval_every=cfg.eval_every,
         eval_episodes=cfg.eval_episodes,

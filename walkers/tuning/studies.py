@@ -46,6 +46,13 @@ STORAGE_ENV = "WALKERS_OPTUNA_STORAGE"
 STUDY_NAME_CHARS = re.compile(r"[A-Za-z0-9_.:+@/ -]+")
 
 
+def absolute_storage(storage: str | None) -> str | None:
+    """``sqlite:///rel.db`` -> an absolute path, so every job finds the same file."""
+    if storage and storage.startswith("sqlite:///") and not storage.startswith("sqlite:////"):
+        return f"sqlite:///{Path(storage.removeprefix('sqlite:///')).resolve()}"
+    return storage
+
+
 def open_storage(
     url: str, heartbeat_interval: int | None, grace_period: int | None, max_retry: int | None
 ) -> RDBStorage:

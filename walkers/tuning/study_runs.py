@@ -9,11 +9,12 @@ import logging
 from pathlib import Path
 
 import optuna
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
+from optuna.trial import TrialState
 
 from walkers import tracking
 from walkers.tracking.hydra_callbacks import stop_remote_jobs
-from walkers.tuning.objective import trials_done
+from walkers.tuning.objective import DONE, trials_done
 from walkers.tuning.optuna_internals import stored_trial
 from walkers.tuning.studies import original_number, redacted
 
@@ -116,3 +117,38 @@ def open_parent_run(
         tags,  # also given to a study's run from before these tags existed
         Path(config.work_dir) / "spool",
     )
+
+
+def report_best(
+    study: optuna.Study,
+    fixed: dict,
+    parent: tracking.Tracker | None,
+    storage: str | None,
+    config: DictConfig,
+    direction: str,
+) -> None:
+    """The best trial -> ``optimization_results.yaml`` in the sweep dir and the parent run."""
+    complete = study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,))
+    if not complete:
+        log.warning("no trial of study %r completed: no best parameters", study.study_name)
+        return
+    best, metric = study.best_trial, config.optimized_metric
+    results = {
+        "name": "optuna",
+        "study_name": study.study_name,
+        "storage": redacted(storage),
+        "optimized_metric": metric,
+        "direction": direction,
+        "best_trial": best.number,
+        "best_value": best.value,
+        "best_params": dict(best.params),  # the sampled values; fixed_params were given
+        "fixed_params": {k: str(v) for k, v in fixed.items()},
+        "trials": {s.name: len(study.get_trials(states=(s,))) for s in DONE},
+    }
+    path = Path(config.hydra.sweep.dir) / "optimization_results.yaml"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    OmegaConf.save(OmegaConf.create(results), path)
+    log.info("best trial %d: %s = %s, params %s", best.number, metric, best.value, best.params)
+    log.info("written to %s", path)
+    if parent is not None:
+        log_best(parent, study, best, path)

@@ -44,7 +44,6 @@ import logging
 import sys
 import time
 from contextlib import contextmanager
-from pathlib import Path
 from typing import Any
 
 import optuna
@@ -62,6 +61,7 @@ from walkers.tuning.objective import check_objective, record_outcome, sweep_dire
 from walkers.tuning.optuna_internals import stored_trial, trial_id
 from walkers.tuning.studies import (
     Heartbeats,
+    absolute_storage,
     check_passed_by_reference,
     check_study_name,
     counted_trials,
@@ -77,29 +77,16 @@ from walkers.tuning.studies import (
 )
 from walkers.tuning.study_runs import (
     end_jobs_runs,
-    log_best,
     log_trial_outcome,
     open_parent_run,
     open_trial_run,
+    report_best,
 )
 from walkers.tuning.trial import PRUNED_AT
 
 log = logging.getLogger("walkers")
 
 SAMPLER_TARGETS = ("hydra_plugins.hydra_optuna_sweeper.*", "optuna.samplers.*")
-DONE = (TrialState.COMPLETE, TrialState.PRUNED, TrialState.FAIL)
-STUDY_TAG = "walkers.study"
-#: Trial run tag: the trial a retried trial repeats (its own number if it is no retry).
-ORIGINAL_TRIAL_TAG = "walkers.original_trial"
-#: Study user attribute: the metric its trials are scored by (a resumed study must keep it).
-METRIC_ATTR = "walkers.optimized_metric"
-
-
-def absolute_storage(storage: str | None) -> str | None:
-    """``sqlite:///rel.db`` -> an absolute path, so every job finds the same file."""
-    if storage and storage.startswith("sqlite:///") and not storage.startswith("sqlite:////"):
-        return f"sqlite:///{Path(storage.removeprefix('sqlite:///')).resolve()}"
-    return storage
 
 
 class PruningOptunaSweeper(OptunaSweeperImpl):
@@ -276,7 +263,9 @@ class PruningOptunaSweeper(OptunaSweeperImpl):
                     time.sleep(poll)
                 else:
                     break
-            patiently(self._report, study, fixed, parent)
+            patiently(
+                report_best, study, fixed, parent, self.storage, self.config, self.direction
+            )
 
     @staticmethod
     def _without_decided(study, trials, beats) -> list[optuna.Trial]:
@@ -341,33 +330,6 @@ class PruningOptunaSweeper(OptunaSweeperImpl):
         failures = [e for e in failures if e is not None]
         if len(failures) / len(trials) > self.max_failure_rate:
             raise failures[0]
-
-    def _report(self, study: optuna.Study, fixed: dict, parent: tracking.Tracker | None) -> None:
-        """Best trial -> ``optimization_results.yaml`` in the sweep dir and the parent run."""
-        complete = study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,))
-        if not complete:
-            log.warning("no trial of study %r completed: no best parameters", study.study_name)
-            return
-        best, metric = study.best_trial, self.config.optimized_metric
-        results = {
-            "name": "optuna",
-            "study_name": study.study_name,
-            "storage": redacted(self.storage),
-            "optimized_metric": metric,
-            "direction": self.direction,
-            "best_trial": best.number,
-            "best_value": best.value,
-            "best_params": dict(best.params),  # the sampled values; fixed_params were given
-            "fixed_params": {k: str(v) for k, v in fixed.items()},
-            "trials": {s.name: len(study.get_trials(states=(s,))) for s in DONE},
-        }
-        path = Path(self.config.hydra.sweep.dir) / "optimization_results.yaml"
-        path.parent.mkdir(parents=True, exist_ok=True)
-        OmegaConf.save(OmegaConf.create(results), path)
-        log.info("best trial %d: %s = %s, params %s", best.number, metric, best.value, best.params)
-        log.info("written to %s", path)
-        if parent is not None:
-            log_best(parent, study, best, path)
 
 
 @contextmanager

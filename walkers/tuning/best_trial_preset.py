@@ -21,8 +21,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from walkers import PROJECT_ROOT
 from walkers.errors import ConfigError
-from walkers.tuning.studies import redacted
-from walkers.tuning.sweeper import absolute_storage
+from walkers.tuning.studies import absolute_storage, redacted
 
 EXPERIMENT_DIR = PROJECT_ROOT / "conf" / "experiment"
 

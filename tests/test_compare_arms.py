@@ -95,9 +95,12 @@ def test_arm_name():
     assert arms.arm_name("td3", {"algo.hidden_sizes": "[64, 64]"}) == (
         "td3 (algo.hidden_sizes=[64, 64])"
     )
-    # the algorithm first, its class path redundant beside it
+    # the algorithm first, its class path redundant beside it; where algorithms differ, their
+    # own hyperparameters are implied by the name (spelled out where names would collide)
     distinct = {"algo._target_": "walkers.agents.td3.TD3", "algo.lr": "0.001", "algo.name": "td3"}
-    assert arms.arm_name("g", distinct) == "g (algo.name=td3, algo.lr=0.001)"
+    assert arms.arm_name("g", distinct) == "g (algo.name=td3)"
+    assert arms.arm_name("g", distinct, limit=3) == "g (algo.name=td3, algo.lr=0.001)"
+    assert arms.arm_name("g", distinct | {"seed_list": "[1]"}) == "g (algo.name=td3, seed_list=[1])"
     many = {f"algo.k{i}": str(i) for i in range(5)}
     assert arms.arm_name("td3", many) == "td3 (algo.k0=0, algo.k1=1, algo.k2=2, +2 more)"
 

@@ -109,19 +109,22 @@ def assignments(keys: Sequence[str], values: Sequence[str]) -> str:
     return ", ".join(f"{k}={v}" for k, v in zip(keys, values, strict=True))
 
 
-def describe(distinct: Mapping[str, str], limit: int = NAME_KEYS) -> str:
+def describe(distinct: Mapping[str, str], limit: int = NAME_KEYS, short: bool = False) -> str:
     """``k=v, ...`` for what sets a configuration apart; ``algo.name`` comes first and makes
-    ``algo._target_`` redundant; past ``limit`` keys it says how many more there are."""
+    ``algo._target_`` redundant (``short``: every other ``algo.*`` key too, the algorithms'
+    own hyperparameters); past ``limit`` keys it says how many more there are."""
     keys = sorted(distinct, key=lambda k: (k != "algo.name", k))
     if "algo.name" in distinct:
-        keys = [k for k in keys if k != "algo._target_"]
+        implied = (lambda k: k.startswith("algo.")) if short else (lambda k: k == "algo._target_")
+        keys = [k for k in keys if k == "algo.name" or not implied(k)]
     shown = ", ".join(f"{k}={distinct[k]}" for k in keys[:limit])
     return shown + (f", +{len(keys) - limit} more" if len(keys) > limit else "")
 
 
-def arm_name(group: str, distinct: Mapping[str, str], limit: int = NAME_KEYS) -> str:
-    """``group``, or ``group (k=v, ...)`` with what sets this configuration apart in its group."""
-    text = describe(distinct, limit)
+def arm_name(group: str, distinct: Mapping[str, str], limit: int | None = None) -> str:
+    """``group``, or ``group (k=v, ...)`` with what sets this configuration apart in its group:
+    shortly (where algorithms differ, by their name alone), or with ``limit`` keys spelled out."""
+    text = describe(distinct, NAME_KEYS, short=True) if limit is None else describe(distinct, limit)
     return f"{group} ({text})" if text else group
 
 

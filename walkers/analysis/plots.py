@@ -4,6 +4,7 @@ study), per-seed scores with the IQM, and a study's score against its ``group_by
 from __future__ import annotations
 
 import math
+import textwrap
 from pathlib import Path
 
 import matplotlib
@@ -31,10 +32,16 @@ def _curve_panels(c: Comparison) -> list[tuple[str, str, list[AlgoResult]]]:
     panels: dict[tuple[str, str], list[AlgoResult]] = {}
     for result in c.algos:
         panels.setdefault((result.x_axis, labels.get(result.algo, "")), []).append(result)
+    # a panel is named by its algorithm where that tells the panels apart, else by its series
+    algorithms = {key: {r.algorithm for r in results} for key, results in panels.items()}
+    by_algorithm = all(len(a) == 1 for a in algorithms.values()) and len(
+        {next(iter(a)) for a in algorithms.values()}
+    ) == len(panels)
     out = []
     for (axis, label_), results in panels.items():
         title = c.env_id if axis == ENV_STEPS else f"{c.env_id}, offline"
-        out.append((axis, f"{title}: {label_}" if label_ else title, results))
+        name = results[0].algorithm if by_algorithm and label_ else textwrap.shorten(label_, 70)
+        out.append((axis, f"{title}: {name}" if name else title, results))
     return out
 
 

@@ -262,3 +262,27 @@ def test_published_figures_stand_beside_the_measured_ones_for_the_algorithms_rep
         assert f"{figure['env_version']} (other version)" in row
         assert "td3 3,100" in row  # the measured IQM beside it
     assert "| dt |" not in section
+
+
+def test_a_run_from_before_a_key_existed_joins_the_arm_of_that_keys_old_value(store):
+    """Runs logged before ``impl`` existed were trained by walkers: they are seeds of the
+    impl=walkers arm, not an arm "(not set)" of their own, and a study by impl finds them."""
+    client = store["client"]
+    experiment = client.create_experiment("later_keys")
+
+    def logged(seed: int, **params: str):
+        run = client.create_run(experiment, tags={"algo": "td3"})
+        for key, value in {"algo.name": "td3", "seed": str(seed), **params}.items():
+            client.log_param(run.info.run_id, key, value)
+        return client.get_run(run.info.run_id)
+
+    old, new, twin = logged(0), logged(1, impl="walkers"), logged(0, impl="sb3")
+    found, left_out, _ = arms.build_arms([old, new, twin], group_by=["impl"])
+    assert left_out == []
+    by_name = {a.name: {r.info.run_id for r in a.runs} for a in found}
+    assert by_name == {
+        "impl=sb3": {twin.info.run_id},
+        "impl=walkers": {old.info.run_id, new.info.run_id},
+    }
+    (single,) = arms.build_arms([old, new])[0]
+    assert len(single.runs) == 2  # one arm, two seeds

@@ -51,6 +51,14 @@ CPU_DEVICES = ("cpu", "auto")
 
 #: How a key a run does not have is shown (a key added to the config after the run).
 ABSENT = "(not set)"
+#: Keys added to the config later, with the value every run from before had: such a run is in
+#: the same arm as a new run with that value (not split off as "(not set)").
+LATER_KEYS = {"impl": "walkers"}  # before impl=sb3 existed, walkers trained every run
+
+
+def run_params(run) -> dict[str, str]:
+    """A run's params as its arm sees them: :data:`LATER_KEYS` filled in where it lacks them."""
+    return LATER_KEYS | dict(run.data.params)
 
 #: At most this many differing keys in an arm's name; the split note lists them all.
 NAME_KEYS = 3
@@ -166,14 +174,14 @@ class Arm:
 def _group_of(run, group_by: Sequence[str]) -> tuple[str, ...]:
     if not group_by:
         return (run.data.tags.get("algo", "?"),)
-    return tuple(run.data.params[k] for k in group_by)
+    return tuple(run_params(run)[k] for k in group_by)
 
 
 def _configs_of(runs: Sequence, exclude: Sequence[str]) -> list[tuple[dict[str, str], list]]:
     """The distinct configurations among ``runs``, each with its runs, in first-seen order."""
     by_config: dict[tuple, tuple[dict[str, str], list]] = {}
     for run in runs:
-        config = arm_config(run.data.params, exclude)
+        config = arm_config(run_params(run), exclude)
         by_config.setdefault(tuple(sorted(config.items())), (config, []))[1].append(run)
     return list(by_config.values())
 
@@ -231,7 +239,7 @@ def build_arms(
     """
     left_out, splits = [], []
     if group_by:
-        lacking = {r.info.run_id for r in runs if any(k not in r.data.params for k in group_by)}
+        lacking = {r.info.run_id for r in runs if any(k not in run_params(r) for k in group_by)}
         if lacking:
             left_out.append(
                 f"{_runs(len(lacking))} without {' or '.join(group_by)} in their config "

@@ -33,6 +33,7 @@ from walkers.analysis.arms import (
     Arm,
     build_arms,
     parse_group_by,
+    run_params,
     same_series_pairs,
     unknown_key_hint,
 )
@@ -151,7 +152,7 @@ def _check(cfg: DictConfig) -> None:
 
 def _check_group_by(group_by: list[str], runs: list, experiment: str) -> None:
     """Every ``group_by`` key must be a config key of some training run of the experiment."""
-    params = [r.data.params for r in runs if r.data.tags.get(KIND_TAG, "train") == "train"]
+    params = [run_params(r) for r in runs if r.data.tags.get(KIND_TAG, "train") == "train"]
     for key in group_by:
         if not any(key in p for p in params):
             raise ConfigError(

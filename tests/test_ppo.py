@@ -258,6 +258,7 @@ def test_evaluate_replays_the_final_evaluation_with_the_frozen_statistics(ppo_ru
                 f"run_id={run.info.run_id}",
                 "checkpoint=last",
                 "episodes=1",
+                "start_states=run",  # the final evaluation's own start state
                 "video=false",
                 "log_to_run=false",
                 f"out={tmp_path}",

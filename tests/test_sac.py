@@ -319,6 +319,7 @@ def test_evaluate_and_collect_take_a_sac_policy(pendulum_sac, tmp_path, monkeypa
                 f"run_id={run.info.run_id}",
                 "checkpoint=best",
                 "episodes=5",
+                "start_states=run",  # the best evaluation's own start states
                 "video=false",
                 f"out={tmp_path}",
                 *store["overrides"],

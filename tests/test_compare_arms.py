@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 from mlflow.entities import Param, Run, RunData, RunInfo, RunTag
@@ -286,3 +289,16 @@ def test_a_run_from_before_a_key_existed_joins_the_arm_of_that_keys_old_value(st
     }
     (single,) = arms.build_arms([old, new])[0]
     assert len(single.runs) == 2  # one arm, two seeds
+
+
+def test_rendering_a_report_imports_no_mlflow():
+    """The report only renders a comparison: its data model and the names of axes come from
+    modules that import no MLflow, and the tracking face imports its parts on first use."""
+    code = (
+        "import sys, walkers.analysis.report, walkers.tracking.names; "
+        "assert 'mlflow' not in sys.modules, 'mlflow imported'; "
+        "from walkers.tracking import KILLED, Tracker; "
+        "assert 'mlflow' in sys.modules"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]

@@ -62,33 +62,4 @@ def __dir__() -> list[str]:
     return sorted(__all__)
 
 
-__all__ = [
-    "END_REASON_TAG",
-    "ENV_STEPS",
-    "FAILED",
-    "FINISHED",
-    "GRADIENT_STEPS",
-    "JOB_KEY_TAG",
-    "KILLED",
-    "KIND_TAG",
-    "LOGGED_THROUGH_TAG",
-    "PRUNED_TAG",
-    "QUICK_HTTP_RETRIES",
-    "STORE_PATIENCE_S",
-    "Tracker",
-    "X_AXIS_TAG",
-    "connect",
-    "download_checkpoint",
-    "end_running",
-    "ending",
-    "flatten",
-    "get_or_create_experiment",
-    "metric_history",
-    "quoted",
-    "redacted_uri",
-    "require_run",
-    "search_runs",
-    "side_run",
-    "tags_equal",
-    "ui_url",
-]
+__all__ = sorted(_HOME_OF)

@@ -117,12 +117,19 @@ def test_the_same_seed_trains_the_same_sb3_run(twins, tmp_path):
 
 def test_resume_continues_an_sb3_run(tmp_path):
     """Killed at its budget and resumed with a larger one: the same run, SB3's step count and
-    replay buffer carried over, no step logged twice."""
+    replay buffer carried over, no step logged twice; SB3 wrote nothing to the temp dir."""
     store = new_store(tmp_path)
     train(compose_cfg(tiny("sac", store, "impl=sb3")))
     run_id = all_runs(store["client"])[0].info.run_id
-    result = run_cli([f"resume={run_id}", "total_steps=900", *store["overrides"]], cwd=tmp_path)
+    temp = tmp_path / "tmpdir"
+    temp.mkdir()
+    result = run_cli(
+        [f"resume={run_id}", "total_steps=900", *store["overrides"]],
+        cwd=tmp_path,
+        env_overrides={"TMPDIR": str(temp)},
+    )
     assert result.returncode == 0, result.stderr[-2000:]
+    assert not list(temp.glob("SB3-*"))  # SB3's own logger folders (one per learn call)
     log = result.stdout + result.stderr
     assert f"resuming run {run_id} at step 600" in log
     run = store["client"].get_run(run_id)

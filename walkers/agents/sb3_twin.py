@@ -101,6 +101,7 @@ class SB3Twin(Agent):
             device=self.device,
             verbose=0,
         )
+        self._log_in_memory()
 
     def _objects(self) -> dict:
         """The arguments that are SB3 objects: noise, schedules, activation, optimizer."""
@@ -121,6 +122,13 @@ class SB3Twin(Agent):
                 "optimizer_kwargs": {"eps": a["adam_eps"]},
             }
         return out
+
+    def _log_in_memory(self) -> None:
+        """SB3 records its training values in memory only (read by ``latest_losses``); left to
+        itself, every ``learn`` call would make a ``$TMPDIR/SB3-<time>`` folder."""
+        from stable_baselines3.common.logger import Logger
+
+        self.model.set_logger(Logger(folder=None, output_formats=[]))
 
     @property
     def vec_normalize(self):
@@ -155,7 +163,7 @@ class SB3Twin(Agent):
 
     def latest_losses(self) -> dict[str, torch.Tensor]:
         """SB3's latest recorded training values, under walkers' metric names."""
-        recorded = self.model.logger.name_to_value if self.model._logger is not None else {}
+        recorded = self.model.logger.name_to_value
         return {
             name: torch.tensor(float(recorded[key]) * scale)
             for key, (name, scale) in SB3_METRICS.items()
@@ -187,6 +195,7 @@ class SB3Twin(Agent):
         self.model = self.cls.load(
             io.BytesIO(state["model"]), env=self.vec_env, device=self.device, force_reset=True
         )
+        self._log_in_memory()
         self.normalization = state["normalization"]
         if self.vec_normalize is not None and self.normalization is not None:
             for key in ("obs_rms", "ret_rms", "returns"):

@@ -92,7 +92,7 @@ def test_training_outlives_its_tracking_server(tmp_path, monkeypatch):
     assert proc.returncode == 0, stderr[-3000:]  # training went on to the end
     (checkpoint,) = work.glob("runs/*/checkpoints/last.pt")
     assert checkpoints.load(checkpoint)["trainer"]["step"] == 2000  # the last checkpoint landed
-    spool = work / "spool" / "unlogged_metrics.jsonl"
+    spool = checkpoint.parent.parent / "unlogged_metrics.jsonl"  # kept in the run's folder
     assert f"saved to {spool}" in stdout + stderr  # ... and the user is told where they went
     kept = [json.loads(line) for line in spool.read_text().splitlines()]
     eval_steps = {m["step"] for m in kept if m["key"] == "eval/return_mean"}

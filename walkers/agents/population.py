@@ -62,6 +62,7 @@ class Population(Protocol):
 
     def resume_notes(self) -> dict[str, str]: ...
 
+
 ADAM_MOMENTS = ("exp_avg", "exp_avg_sq")
 
 

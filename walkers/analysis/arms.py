@@ -60,6 +60,7 @@ def run_params(run) -> dict[str, str]:
     """A run's params as its arm sees them: :data:`LATER_KEYS` filled in where it lacks them."""
     return LATER_KEYS | dict(run.data.params)
 
+
 #: At most this many differing keys in an arm's name; the split note lists them all.
 NAME_KEYS = 3
 

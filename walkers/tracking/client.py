@@ -124,9 +124,8 @@ def require_run(client: MlflowClient, run_id: str, uri: str, key: str = "run_id"
         ) from None
 
 
-def download_checkpoint(client: MlflowClient, run_id: str, filename: str, work_dir) -> Path:
-    """``checkpoints/<filename>`` of a run, downloaded under ``<work_dir>/runs/<run_id>/``."""
-    dst = Path(work_dir) / "runs" / run_id / "download"
+def download_checkpoint(client: MlflowClient, run_id: str, filename: str, dst) -> Path:
+    """``checkpoints/<filename>`` of a run, downloaded into the folder ``dst``."""
     try:
         return Path(client.download_artifacts(run_id, f"checkpoints/{filename}", str(dst)))
     except Exception:

@@ -15,7 +15,6 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import gymnasium as gym
 import torch
@@ -31,18 +30,14 @@ from walkers.seeding import (
     torch_rng_state,
     training_env_seed,
 )
-from walkers.tracking import ENV_STEPS, GRADIENT_STEPS, Tracker
-from walkers.training import checkpoints
+from walkers.tracking.names import ENV_STEPS, GRADIENT_STEPS
 from walkers.training.evaluation import Evaluation, greedy_evaluation
 from walkers.training.rollout import record_episodes
+from walkers.training.run import TrainingRun
 from walkers.training.video import write_gif
 
 log = logging.getLogger("walkers")
 
-#: Where a run keeps its resume checkpoint on the machine that trains it: ``last.pt`` with the
-#: replay buffer (exactly what a resume on this machine needs), beside ``checkpoints/``, whose
-#: files are uploaded to MLflow (lighter: no buffer unless ``save_buffer=true``).
-RESUME_DIR = "resume"
 #: Frames kept in the gif logged every ``video_every`` steps (a glance, not a film).
 TRAINING_GIF_FRAMES = 500
 
@@ -101,9 +96,8 @@ class RunBook:
         agent: Agent,
         env: gym.Env | None,
         eval_env: gym.Env,
-        tracker: Tracker,
+        run: TrainingRun,
         settings: RunSettings,
-        checkpoint_dir: Path,
         checkpoint_extra: dict | None = None,
         video_env: gym.Env | None = None,
         on_evaluation: Callable[[int, float], bool] | None = None,
@@ -112,8 +106,7 @@ class RunBook:
         summarize: Callable[[dict[str, float]], dict[str, float]] | None = None,
     ):
         self.agent, self.env, self.eval_env, self.video_env = agent, env, eval_env, video_env
-        self.tracker, self.settings, self.axis = tracker, settings, axis
-        self.checkpoint_dir = Path(checkpoint_dir)
+        self.run, self.settings, self.axis = run, settings, axis
         self.checkpoint_extra = checkpoint_extra or {}  # e.g. the composed config
         # called with (step, eval mean) after each evaluation; True stops training (a pruned trial)
         self.on_evaluation = on_evaluation
@@ -134,26 +127,21 @@ class RunBook:
         self.last_checkpoint_step = self.progress.step
         restore_torch_rng(state)
         self._env_rng = state.get("env_rng")
-        mark = self.tracker.logged_through
+        mark = self.run.logged_through
         if mark is not None and mark > self.progress.step:
             log.warning(
                 "run %s logged metrics up to step %d before it stopped; it resumes from its "
                 "checkpoint at step %d and logs from step %d on (no step is logged twice)",
-                self.tracker.run_id,
+                self.run.run_id,
                 mark,
                 self.progress.step,
                 mark + 1,
             )
         if notes := self.agent.resume_notes():  # e.g. a replay buffer that had to be refilled
-            self.tracker.set_tags(notes)
+            self.run.set_tags(notes)
 
-    @property
-    def resume_checkpoint(self) -> Path:
-        """``last.pt`` with everything a resume needs (the replay buffer included), kept locally."""
-        return self.checkpoint_dir.parent / RESUME_DIR / "last.pt"
-
-    def save_checkpoint(self, name: str = "last.pt") -> Path:
-        """Write ``name`` and upload it; keep ``last.pt`` whole as :attr:`resume_checkpoint` too.
+    def save_checkpoint(self, name: str = "last.pt") -> None:
+        """Write ``name`` and upload it; keep ``last.pt`` whole as the run's local resume copy.
 
         The uploaded ``last.pt`` holds the replay buffer only with ``save_buffer=true`` (it is
         large); the local resume copy always does, so a resume on this machine is exact.
@@ -165,20 +153,18 @@ class RunBook:
             "env_rng": env_rng_state(self.env) if self.env is not None else None,
             **self.checkpoint_extra,
         }
+        whole = None
         if last and not self.settings.save_buffer:
             whole = state | {"agent": self.agent.state_dict(with_buffer=True)}
-            checkpoints.save(whole, self.resume_checkpoint)
         state["agent"] = self.agent.state_dict(with_buffer=last and self.settings.save_buffer)
-        path = checkpoints.save(state, self.checkpoint_dir / name)
         if last and self.settings.save_buffer:
-            checkpoints.save(state, self.resume_checkpoint)
-        self.tracker.log_artifact(path, "checkpoints")
-        return path
+            whole = state
+        self.run.save_checkpoint(name, state, resume_state=whole)
 
     def checkpoint_and_flush(self) -> None:
         self.save_checkpoint("last.pt")
         self.last_checkpoint_step = self.progress.step
-        self.tracker.flush()
+        self.run.flush()
 
     # --- the training env ---------------------------------------------------------------------
     def first_reset(self):
@@ -203,7 +189,7 @@ class RunBook:
         p = self.progress
         p.episodes += 1
         episode = info["episode"]  # recorded before any reward shaping
-        self.tracker.log_metrics(
+        self.run.log_metrics(
             {"train/episode_return": episode["r"], "train/episode_length": episode["l"]}, p.step
         )
 
@@ -220,11 +206,11 @@ class RunBook:
             rate = (p.step - self._log_step) / (now - self._log_time)
             self._log_step, self._log_time = p.step, now
             scalars = {k: v.item() for k, v in losses.items()}
-            self.tracker.log_metrics({self.axis.rate_metric: rate, **scalars}, p.step)
+            self.run.log_metrics({self.axis.rate_metric: rate, **scalars}, p.step)
             self._check_divergence(scalars)
         if p.step % s.eval_every == 0 or p.step == s.total_steps:
             mean = self.evaluate()
-            self.tracker.flush()  # the curves move in the UI at every evaluation
+            self.run.flush()  # the curves move in the UI at every evaluation
             if (
                 self.on_evaluation is not None
                 and p.step < s.total_steps  # a finished run is never "stopped early"
@@ -261,7 +247,7 @@ class RunBook:
         p.eval_steps.append(p.step)
         p.eval_means.append(mean)
         metrics = {"eval/return_mean": mean, "eval/return_std": float(returns.std())}
-        self.tracker.log_metrics(metrics | extra, p.step)
+        self.run.log_metrics(metrics | extra, p.step)
         if mean > p.best_eval:
             p.best_eval = mean
             self.save_checkpoint("best.pt")
@@ -270,10 +256,10 @@ class RunBook:
     def record_video(self) -> None:
         """Log a gif of one greedy episode (from the first eval start state) to ``videos/``."""
         _, frames, fps = record_episodes(self.agent, self.video_env, self.eval_start_seeds[:1])
-        path = self.checkpoint_dir.parent / "videos" / f"step_{self.progress.step:08d}.gif"
+        path = self.run.folder.video(self.progress.step)
         path.parent.mkdir(parents=True, exist_ok=True)
         write_gif(frames[:TRAINING_GIF_FRAMES], path, fps)
-        self.tracker.log_artifact(path, "videos")
+        self.run.upload(path, "videos")
 
     # --- the end ------------------------------------------------------------------------------
     def finish(self, rate: float | None, extra: dict[str, float] | None = None) -> dict:
@@ -283,6 +269,6 @@ class RunBook:
         summary |= extra or {}
         if rate is not None:
             summary[self.axis.rate_metric] = rate
-        self.tracker.log_metrics(summary, p.step)
+        self.run.log_metrics(summary, p.step)
         self.checkpoint_and_flush()
         return summary

@@ -26,6 +26,7 @@ from walkers.training import checkpoints
 from walkers.training.checkpoints import agent_from_checkpoint
 from walkers.training.envs import make_env
 from walkers.training.rollout import record_episodes
+from walkers.training.run import RunFolder, TrainingRun
 from walkers.training.video import write_videos
 
 log = logging.getLogger("walkers")
@@ -63,7 +64,8 @@ def fetch_checkpoint(cfg: DictConfig, client) -> Path:
                 "or the path of an existing .pt file"
             )
         return path
-    return tracking.download_checkpoint(client, cfg.run_id, f"{cfg.checkpoint}.pt", cfg.work_dir)
+    folder = RunFolder.of(cfg.work_dir, cfg.run_id)
+    return tracking.download_checkpoint(client, cfg.run_id, f"{cfg.checkpoint}.pt", folder.download)
 
 
 def evaluate(cfg: DictConfig) -> dict:
@@ -112,7 +114,7 @@ def evaluate(cfg: DictConfig) -> dict:
     summary_file = stem.with_suffix(".json")
     summary_file.write_text(json.dumps(summary, indent=2))
     if client is not None and cfg.log_to_run:
-        run = tracking.Tracker.attach(client, cfg.run_id, Path(cfg.work_dir) / "spool")
+        run = TrainingRun.attach(client, cfg.work_dir, cfg.run_id)
         for path in [*videos, summary_file]:
-            run.log_artifact(path, "evaluations")
+            run.upload(path, "evaluations")
     return {**summary, "videos": videos}

@@ -1,23 +1,16 @@
 """``resume=``: continue a run (or a population's runs together) from its last checkpoint.
 
 A resumed run uses its stored config; only :data:`RESUME_OVERRIDABLE` keys are taken from the
-new command line. Its last checkpoint is the local resume copy (replay buffer included) where
-this machine trained it and MLflow's copy is not newer, else the one uploaded to MLflow.
+new command line. Its last checkpoint comes from :meth:`TrainingRun.last_checkpoint`.
 """
 
 from __future__ import annotations
 
-import logging
-from pathlib import Path
-
 from omegaconf import DictConfig, OmegaConf
 
-from walkers import tracking
-from walkers.errors import CheckpointError, ConfigError
-from walkers.training import checkpoints
-from walkers.training.bookkeeping import RESUME_DIR
-
-log = logging.getLogger("walkers")
+from walkers.errors import ConfigError
+from walkers.tracking import flatten
+from walkers.training.run import TrainingRun
 
 #: Keys a resumed run takes from the new command line; everything else comes from its checkpoint.
 RESUME_OVERRIDABLE = (
@@ -31,11 +24,6 @@ RESUME_OVERRIDABLE = (
     "work_dir",
     "video_every",
 )
-
-
-def run_dir(work_dir, run_id: str) -> Path:
-    """A run's local folder: its checkpoints before upload, its resume copy, downloads."""
-    return Path(work_dir) / "runs" / run_id
 
 
 def check_resume_given(resume) -> None:
@@ -55,8 +43,7 @@ def check_resume_given(resume) -> None:
 def load_run(client, cfg: DictConfig, overrides, run_id: str | None = None):
     """The run's stored config (with the allowed new overrides) and its last checkpoint."""
     run_id = str(cfg.resume) if run_id is None else run_id
-    tracking.require_run(client, run_id, cfg.tracking.uri, key="resume")
-    state = last_checkpoint(client, run_id, cfg.work_dir)
+    state = TrainingRun.last_checkpoint(client, cfg, run_id)
     stored = OmegaConf.create(state["config"])
     given = {o.split("=", 1)[0].lstrip("+~") for o in overrides}
     for key in RESUME_OVERRIDABLE:
@@ -74,31 +61,6 @@ def load_run(client, cfg: DictConfig, overrides, run_id: str | None = None):
     return stored, state
 
 
-def last_checkpoint(client, run_id: str, work_dir) -> dict:
-    """A run's ``last.pt``: the local resume copy (replay buffer included) where this machine
-    trained the run and MLflow's is not newer, else the one uploaded to MLflow."""
-    local = run_dir(work_dir, run_id) / RESUME_DIR / "last.pt"
-    try:
-        uploaded = tracking.download_checkpoint(client, run_id, "last.pt", work_dir)
-    except CheckpointError:  # never uploaded (e.g. the store was down): the local copy will do
-        if not local.is_file():
-            raise
-        uploaded = None
-    uploaded = checkpoints.load(uploaded) if uploaded is not None else None  # damaged: an error
-    if local.is_file():
-        whole = checkpoints.load(local)
-        if uploaded is None or whole["trainer"]["step"] >= uploaded["trainer"]["step"]:
-            log.info("resuming from %s (with its replay buffer, if the agent has one)", local)
-            return whole
-        log.warning(
-            "%s is at step %d, MLflow's last.pt at step %d: resuming from MLflow's",
-            local,
-            whole["trainer"]["step"],
-            uploaded["trainer"]["step"],
-        )
-    return uploaded
-
-
 def load_population(client, cfg: DictConfig, overrides):
     """``resume=[id,...]``: runs of one configuration (a population's members, typically)
     continued together as one population. Returns the population's config and, per member,
@@ -113,7 +75,7 @@ def load_population(client, cfg: DictConfig, overrides):
     members = [load_run(client, cfg, overrides, run_id) for run_id in run_ids]
 
     def shared_settings(member_cfg: DictConfig) -> dict:
-        settings = tracking.flatten(OmegaConf.to_container(member_cfg, resolve=True))
+        settings = flatten(OmegaConf.to_container(member_cfg, resolve=True))
         return {k: v for k, v in settings.items() if k not in ("seed", "resume")}
 
     (first_cfg, first_state), first = members[0], shared_settings(members[0][0])

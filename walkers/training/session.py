@@ -1,15 +1,16 @@
 """One training session from a composed config: check it, resume or open the run(s), build the
 envs and the agent, run the loop, end every run with its status; return the optimized metric.
 
-    single run:   envs + agent -> open_run -> RunBook -> train_online | train_offline
-    population:   K members' envs + one agent -> K runs and books -> train_population
+    single run:   envs + agent -> TrainingRun.open -> RunBook -> train_online | _offline | _sb3
+    population:   K members' envs + one agent -> K TrainingRuns and books -> train_population
+
+Every run opened is ended by :func:`walkers.training.run.ending`, whatever way the session ends.
 """
 
 from __future__ import annotations
 
 import logging
 import math
-from contextlib import contextmanager
 
 import numpy as np
 import torch
@@ -29,14 +30,8 @@ from walkers.training.bookkeeping import (
 from walkers.training.envs import env_spaces, make_env
 from walkers.training.evaluation import per_target_return, with_normalized_score
 from walkers.training.loops import train_offline, train_online, train_population, train_sb3
-from walkers.training.runs import (
-    MEMBER_TAG,
-    POPULATION_TAG,
-    continue_earlier_attempt,
-    open_run,
-    prepare_run_dir,
-    shareable,
-)
+from walkers.training.provenance import MEMBER_TAG, POPULATION_TAG, shareable
+from walkers.training.run import TrainingRun, ending
 from walkers.training.validate import is_offline, validate
 from walkers.tuning.trial import TrialReporter
 
@@ -51,7 +46,8 @@ def train(cfg: DictConfig, overrides: list[str] | tuple = ()) -> float:
         warn_short_warmup(cfg)
     client = tracking.connect(cfg.tracking.uri)
     if not cfg.resume:
-        cfg = continue_earlier_attempt(client, cfg)  # a multirun job run again (its worker died)
+        # a multirun job run again (its worker died) continues its earlier attempt's run
+        cfg = TrainingRun.continue_earlier_attempt(client, cfg)
     state, members = None, None
     if OmegaConf.is_list(cfg.resume):  # several runs, continued together as one population
         cfg, members = resume.load_population(client, cfg, overrides)
@@ -86,9 +82,9 @@ def _train_single(cfg: DictConfig, client, state: dict | None) -> dict[str, floa
         if isinstance(agent, SB3Twin):
             agent.attach(env, cfg.total_steps)  # SB3's model is built on its training env
         axis = GRADIENT_STEP_AXIS if data is not None else ENV_STEP_AXIS
-        trackers = [open_run(client, cfg, axis.name, data)]
+        runs = [TrainingRun.open(client, cfg, axis.name, data)]
         # From here on the run exists in MLflow: every way out sets its final status.
-        with _announced(trackers), tracking.ending(trackers):
+        with ending(runs):
             offline = (
                 {
                     "evaluation": per_target_return(data.normalized),
@@ -97,14 +93,14 @@ def _train_single(cfg: DictConfig, client, state: dict | None) -> dict[str, floa
                 if data is not None
                 else {}
             )
-            book = _book(cfg, trackers[0], agent, env, eval_env, axis, video_env, **offline)
+            book = _book(cfg, runs[0], agent, env, eval_env, axis, video_env, **offline)
             if cfg.trial.id is not None:  # a job of an Optuna study
                 book.on_evaluation = TrialReporter(
                     cfg.trial, cfg.get("pruner"), cfg.seed, cfg.seeds_per_trial
                 )
             if state is not None:
                 book.restore(state)
-                log.info("resuming run %s at step %d", trackers[0].run_id, book.progress.step)
+                log.info("resuming run %s at step %d", runs[0].run_id, book.progress.step)
             if data is not None:
                 summary = train_offline(agent, book)
             elif isinstance(agent, SB3Twin):
@@ -112,7 +108,7 @@ def _train_single(cfg: DictConfig, client, state: dict | None) -> dict[str, floa
             else:
                 summary = train_online(agent, env, book)
             if book.stopped_early:
-                trackers[0].set_tags({tracking.PRUNED_TAG: book.progress.step})
+                runs[0].mark_pruned(book.progress.step)
             return summary
     finally:
         for e in (env, eval_env, video_env):
@@ -133,16 +129,16 @@ def _train_population(
     )
     envs = [make_env(cfg.env) for _ in members]
     eval_envs = [make_env(cfg.env, shaping=False) for _ in members]
-    trackers: list[tracking.Tracker] = []
+    runs: list[TrainingRun] = []
     try:
         agent = build_agent(cfg, env_spaces(eval_envs[0]), population=k)
-        with _announced(trackers, population=True), tracking.ending(trackers):
+        with ending(runs, population=True):
             for i, member in enumerate(members):
                 tags = {POPULATION_TAG: str(k), MEMBER_TAG: str(i)}
-                trackers.append(open_run(client, member, ENV_STEP_AXIS.name, extra_tags=tags))
+                runs.append(TrainingRun.open(client, member, ENV_STEP_AXIS.name, extra_tags=tags))
             books = [
-                _book(member, tracker, agent.member_policy(i), envs[i], eval_envs[i])
-                for i, (member, tracker) in enumerate(zip(members, trackers, strict=True))
+                _book(member, run, agent.member_policy(i), envs[i], eval_envs[i])
+                for i, (member, run) in enumerate(zip(members, runs, strict=True))
             ]
             for book, (_, state) in zip(books, resumed or [], strict=False):
                 book.restore(state)
@@ -154,37 +150,19 @@ def _train_population(
             e.close()
 
 
-def _book(cfg: DictConfig, tracker, agent, env, eval_env, axis=ENV_STEP_AXIS, video_env=None, **kw):
-    """The run's :class:`RunBook`, checkpointing into its local folder with its config."""
+def _book(cfg: DictConfig, run, agent, env, eval_env, axis=ENV_STEP_AXIS, video_env=None, **kw):
+    """The run's :class:`RunBook`, with its config in every checkpoint."""
     return RunBook(
         agent,
         env,
         eval_env,
-        tracker,
+        run,
         run_settings(cfg),
-        checkpoint_dir=prepare_run_dir(cfg, tracker) / "checkpoints",
         checkpoint_extra={"config": shareable(cfg)},
         video_env=video_env,
         axis=axis,
         **kw,
     )
-
-
-@contextmanager
-def _announced(trackers: list[tracking.Tracker], population: bool = False):
-    """On the way out, after the runs' statuses are set: say how they ended, where to see them,
-    and the command that continues them (a population's always, a single run's if killed)."""
-    try:
-        yield
-    finally:
-        for tracker in trackers:
-            log.info("MLflow run %s ended %s", tracker.run_id, tracker.status)
-            log.info("open it: `make ui`, then %s", tracker.url)
-        if population and trackers:
-            ids = ",".join(tracker.run_id for tracker in trackers)
-            log.info("continue them together: python -m walkers.train 'resume=[%s]'", ids)
-        elif trackers and trackers[0].status == tracking.KILLED:
-            log.info("continue it: python -m walkers.train resume=%s", trackers[0].run_id)
 
 
 def member_config(cfg: DictConfig, i: int) -> DictConfig:

@@ -263,9 +263,7 @@ class PruningOptunaSweeper(OptunaSweeperImpl):
                     time.sleep(poll)
                 else:
                     break
-            patiently(
-                report_best, study, fixed, parent, self.storage, self.config, self.direction
-            )
+            patiently(report_best, study, fixed, parent, self.storage, self.config, self.direction)
 
     @staticmethod
     def _without_decided(study, trials, beats) -> list[optuna.Trial]:

@@ -1,0 +1,117 @@
+"""What a training run records about itself: its tags (algorithm, env, seed, implementation,
+commit, worker, a sweep job's place), its name, and its config as shareable params (no
+secrets)."""
+
+from __future__ import annotations
+
+import socket
+import subprocess
+import sys
+
+from omegaconf import DictConfig, OmegaConf
+
+from walkers import PROJECT_ROOT, tracking
+from walkers.tuning.studies import redacted
+
+#: Tag: the machine (and Ray node) that trains the run; a resumed run: the latest one.
+WORKER_TAG = "walkers.worker"
+#: Tags of a population member's run: the population's size, the member's place in it.
+POPULATION_TAG = "walkers.population"
+MEMBER_TAG = "walkers.population_member"
+#: Tag of an earlier attempt's run that a job run again could not continue (it is FAILED).
+SUPERSEDED_TAG = "walkers.superseded"
+
+
+def new_run_tags(cfg: DictConfig, x_axis: str, data=None) -> dict[str, str]:
+    """The tags a new run starts with; ``x_axis``: what its steps count; ``data``: an offline
+    run's dataset."""
+    commit = git_commit()
+    tags = {
+        "algo": cfg.algo.name,
+        "env": cfg.env.id,
+        "seed": str(cfg.seed),
+        "impl": cfg.get("impl", "walkers"),
+        WORKER_TAG: worker_name(),
+        "git_commit": commit,
+        "mlflow.source.git.commit": commit,
+        tracking.X_AXIS_TAG: x_axis,
+    }
+    if data is not None:
+        tags["dataset"] = data.id
+    if cfg.job_key:
+        tags[tracking.JOB_KEY_TAG] = cfg.job_key
+    return tags
+
+
+def run_name(cfg: DictConfig) -> str:
+    """``tracking.run_name``, else ``<algo>[-sb3]-<env>-s<seed>``; a study's trial:
+    ``<study>-trial<n>[-s<seed>]``."""
+    if cfg.trial.number is not None:
+        name = f"{cfg.trial.study}-trial{cfg.trial.number}"
+        return name + (f"-s{cfg.seed}" if cfg.seeds_per_trial > 1 else "")
+    twin = "-sb3" if cfg.get("impl") == "sb3" else ""
+    return cfg.tracking.run_name or f"{cfg.algo.name}{twin}-{cfg.env.id}-s{cfg.seed}"
+
+
+def trial_tags(cfg: DictConfig) -> dict[str, str]:
+    """A sweep job's place in its study: the study, the trial, the MLflow run it nests under
+    (set again on resume: a retried trial of a study continues the run of the trial it
+    retries)."""
+    if cfg.trial.number is None:
+        return {}
+    tags = {"walkers.study": cfg.trial.study, "walkers.trial": str(cfg.trial.number)}
+    if cfg.trial.parent_run_id:
+        tags["mlflow.parentRunId"] = cfg.trial.parent_run_id
+    return tags
+
+
+def worker_name() -> str:
+    """Where the run trains: the host, and the Ray node when a Ray cluster runs the job."""
+    host = socket.gethostname()
+    if "ray" in sys.modules:  # only a Ray launcher's job has it imported
+        import ray
+
+        if ray.is_initialized():
+            return f"{host}/ray-node-{ray.get_runtime_context().get_node_id()[:12]}"
+    return host
+
+
+def shareable(cfg: DictConfig) -> dict:
+    """The resolved config as MLflow params, ``config.yaml`` and checkpoints hold it: without
+    the study database's password (jobs get theirs from the sweeper, never from a stored
+    config)."""
+    data = OmegaConf.to_container(cfg, resolve=True)
+    for node in ("trial", "optuna"):
+        if isinstance(data.get(node), dict) and data[node].get("storage"):
+            data[node]["storage"] = redacted(data[node]["storage"])
+    if isinstance(data.get("tracking"), dict) and data["tracking"].get("uri"):
+        data["tracking"]["uri"] = tracking.redacted_uri(data["tracking"]["uri"])
+    return data
+
+
+def git_commit() -> str:
+    """The commit the code runs from (provenance tag), or "unknown"."""
+    try:
+        out = subprocess.run(
+            ["git", "rev-parse", "HEAD"],
+            cwd=PROJECT_ROOT,
+            capture_output=True,
+            text=True,
+            timeout=5,
+        )
+        return out.stdout.strip() if out.returncode == 0 else "unknown"
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+def dataset_params(data) -> dict[str, str]:
+    """An offline run's dataset statistics, as params."""
+    returns = data.returns
+    return {
+        "dataset_stats.episodes": len(data.episodes),
+        "dataset_stats.steps": data.steps,
+        "dataset_stats.return_mean": f"{returns.mean():.2f}",
+        "dataset_stats.return_max": f"{returns.max():.2f}",
+        "dataset_stats.behaviour_return": data.behaviour_return,
+        "dataset_stats.random_return": data.random_return,
+    }

@@ -1,0 +1,301 @@
+"""A training run from opening to its final status: its MLflow run and its local folder.
+
+:class:`TrainingRun` is the one object the training command, the loops' book and resume talk to
+about a run, and the only one of them that talks to :mod:`walkers.tracking` for it: it opens the
+run (new, or the resumed one reopened), continues an earlier attempt of a job run again, finds
+its last checkpoint, logs and uploads, and :func:`ending` gives it its final status on every way
+out. :class:`RunFolder` is the one place the local layout is spelled::
+
+    <work_dir>/runs/<run id>/
+        config.yaml                  the resolved config (secrets redacted), also logged
+        checkpoints/best.pt, last.pt uploaded to MLflow after each write
+        resume/last.pt               last.pt with the replay buffer: an exact resume here
+        videos/step_<step>.gif       the training gifs, uploaded
+        download/                    checkpoints fetched from MLflow (resume elsewhere, evaluate)
+        unlogged_metrics.jsonl       metrics MLflow never took (the store down at the end)
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+from omegaconf import DictConfig, OmegaConf
+
+from walkers import tracking
+from walkers.errors import CheckpointError
+from walkers.training import checkpoints
+from walkers.training.provenance import (
+    MEMBER_TAG,
+    SUPERSEDED_TAG,
+    WORKER_TAG,
+    dataset_params,
+    new_run_tags,
+    run_name,
+    shareable,
+    trial_tags,
+    worker_name,
+)
+
+log = logging.getLogger("walkers")
+
+
+@dataclass(frozen=True)
+class RunFolder:
+    """A run's local folder (see the module docstring for what lives where)."""
+
+    root: Path
+
+    @classmethod
+    def of(cls, work_dir, run_id: str) -> RunFolder:
+        return cls(Path(work_dir) / "runs" / run_id)
+
+    @property
+    def config_yaml(self) -> Path:
+        return self.root / "config.yaml"
+
+    def checkpoint(self, name: str) -> Path:
+        """``checkpoints/<name>``: the copy uploaded to MLflow (no replay buffer by default)."""
+        return self.root / "checkpoints" / name
+
+    @property
+    def resume_checkpoint(self) -> Path:
+        """``last.pt`` with everything a resume needs (the replay buffer included), kept here."""
+        return self.root / "resume" / "last.pt"
+
+    def video(self, step: int) -> Path:
+        return self.root / "videos" / f"step_{step:08d}.gif"
+
+    @property
+    def download(self) -> Path:
+        return self.root / "download"
+
+
+class TrainingRun:
+    """One training run: its MLflow run (a :class:`~walkers.tracking.Tracker`) and its folder."""
+
+    def __init__(self, tracker: tracking.Tracker, folder: RunFolder):
+        self.tracker, self.folder = tracker, folder
+        tracker.spool_dir = folder.root  # what MLflow never takes is kept with the run
+
+    # --- opening ------------------------------------------------------------------------------
+    @classmethod
+    def open(
+        cls, client, cfg: DictConfig, x_axis: str, data=None, extra_tags: dict | None = None
+    ) -> TrainingRun:
+        """The resumed run (``cfg.resume``) reopened, or a new one with the config as params and
+        tags; either way with its ``config.yaml`` written and logged.
+
+        ``x_axis``: what the run's steps count; ``data``: an offline run's dataset;
+        ``extra_tags`` are set either way (a population member: its place in the population).
+        """
+        tags = (extra_tags or {}) | trial_tags(cfg)
+        if cfg.resume:
+            tracker = tracking.Tracker.reopen(client, cfg.resume, ".", resumed_training=True)
+            tags |= {WORKER_TAG: worker_name()}
+        else:
+            tags = new_run_tags(cfg, x_axis, data) | tags
+            tracker = tracking.Tracker.start(
+                client, cfg.tracking.experiment, run_name(cfg), tags=tags, spool_dir="."
+            )
+        run = cls(tracker, RunFolder.of(cfg.work_dir, tracker.run_id))
+        try:
+            if cfg.resume:
+                tracker.set_tags(tags)
+            else:
+                tracker.log_params(tracking.flatten(shareable(cfg)))
+                if data is not None:
+                    tracker.log_params(dataset_params(data))
+            run._write_config(cfg)
+        except BaseException:
+            tracker.end(tracking.FAILED)
+            raise
+        if cfg.tracking.get("system_metrics"):
+            tracker.start_system_metrics(cfg.tracking.system_metrics_every)
+        return run
+
+    def _write_config(self, cfg: DictConfig) -> None:
+        path = self.folder.config_yaml
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(OmegaConf.to_yaml(shareable(cfg)))
+        self.tracker.log_artifact(path)
+
+    @classmethod
+    def attach(cls, client, work_dir, run_id: str) -> TrainingRun:
+        """An existing run, to log more to (an evaluation's videos) or to end (an earlier
+        attempt superseded), without reopening it."""
+        return cls(tracking.Tracker.attach(client, run_id, "."), RunFolder.of(work_dir, run_id))
+
+    @staticmethod
+    def continue_earlier_attempt(client, cfg: DictConfig) -> DictConfig:
+        """A job run again continues the run(s) of its earlier attempt instead of starting more.
+
+        Ray runs a job again when its worker died (kill -9, ``ray stop`` on the node); a study
+        runs a trial again when its sweeper died (``optuna.max_retry``). The earlier attempt's
+        run, left RUNNING (or KILLED by SIGTERM), is found by the job's key (``job_key``) and
+        resumed from its last checkpoint, fetched from MLflow on whatever worker this is; a
+        population's K member runs are resumed together (``resume=[...]``). Without checkpoints
+        to continue from (none yet, or a population's members cut at different steps) the
+        earlier runs are marked FAILED and new ones start.
+        """
+        if not cfg.job_key:
+            return cfg
+        experiment = client.get_experiment_by_name(cfg.tracking.experiment)
+        if experiment is None:
+            return cfg
+        query = tracking.tags_equal({tracking.JOB_KEY_TAG: cfg.job_key})
+        earlier = [
+            r
+            for r in tracking.search_runs(client, experiment.experiment_id, query)
+            if r.info.status in ("RUNNING", "KILLED")
+        ]
+        if not earlier:
+            return cfg
+        if cfg.population > 1:
+            by_member = {int(r.data.tags.get(MEMBER_TAG, -1)): r for r in earlier}
+            runs = [by_member.get(i) for i in range(cfg.population)]
+        else:
+            runs = earlier[:1]
+        problem = _why_not_continued(client, cfg, runs)
+        ids = [r.info.run_id for r in earlier if r is not None]
+        if problem:
+            log.warning(
+                "job %s ran before as run(s) %s, %s: marked FAILED; starting anew",
+                cfg.job_key,
+                ", ".join(ids),
+                problem,
+            )
+            for run_id in ids:
+                run = TrainingRun.attach(client, cfg.work_dir, run_id)
+                run.set_tags({SUPERSEDED_TAG: f"{problem}: the job ran again as new run(s)"})
+                run.end(tracking.FAILED)
+            return cfg
+        log.warning(
+            "job %s ran before as run(s) %s (%s): continuing it from its last checkpoint",
+            cfg.job_key,
+            ", ".join(ids),
+            earlier[0].info.status,
+        )
+        cfg = cfg.copy()
+        cfg.resume = ids[0] if cfg.population == 1 else [r.info.run_id for r in runs]
+        return cfg
+
+    @staticmethod
+    def last_checkpoint(client, cfg: DictConfig, run_id: str) -> dict:
+        """Run ``run_id``'s ``last.pt`` (a clear error if ``tracking.uri`` has no such run):
+        the local resume copy (replay buffer included) where this machine trained the run and
+        MLflow's is not newer, else the one uploaded to MLflow."""
+        tracking.require_run(client, run_id, cfg.tracking.uri, key="resume")
+        return _last_checkpoint(client, run_id, cfg.work_dir)
+
+    # --- while it trains ----------------------------------------------------------------------
+    @property
+    def run_id(self) -> str:
+        return self.tracker.run_id
+
+    @property
+    def logged_through(self) -> int | None:
+        """The last step an earlier attempt of this run logged (a resumed run logs after it)."""
+        return self.tracker.logged_through
+
+    def log_metrics(self, metrics: Mapping[str, float], step: int) -> None:
+        self.tracker.log_metrics(metrics, step)
+
+    def flush(self) -> bool:
+        return self.tracker.flush()
+
+    def set_tags(self, tags: Mapping[str, str]) -> None:
+        self.tracker.set_tags(tags)
+
+    def mark_pruned(self, step: int) -> None:
+        self.tracker.set_tags({tracking.PRUNED_TAG: step})
+
+    def save_checkpoint(self, name: str, state: dict, resume_state: dict | None = None) -> Path:
+        """Write ``checkpoints/<name>`` and upload it; ``resume_state`` (``last.pt`` whole) is
+        kept as the local resume copy."""
+        if resume_state is not None:
+            checkpoints.save(resume_state, self.folder.resume_checkpoint)
+        path = checkpoints.save(state, self.folder.checkpoint(name))
+        self.tracker.log_artifact(path, "checkpoints")
+        return path
+
+    def upload(self, path: Path, artifact_path: str) -> None:
+        """Upload ``path`` into the run's ``artifact_path`` (kept locally if the store is down)."""
+        self.tracker.log_artifact(path, artifact_path)
+
+    # --- the end ------------------------------------------------------------------------------
+    @property
+    def status(self) -> str | None:
+        return self.tracker.status
+
+    def end(self, status: str) -> None:
+        self.tracker.end(status)
+
+    @property
+    def url(self) -> str:
+        return self.tracker.url
+
+
+@contextmanager
+def ending(runs: list[TrainingRun], population: bool = False):
+    """Every run in ``runs`` (a list that may grow inside the block) ends FINISHED, KILLED or
+    FAILED on the way out (:func:`walkers.tracking.ending`); then the log says how each ended,
+    where to see it, and the command that continues it (a population's always, a single run's
+    if it was killed)."""
+    try:
+        with tracking.ending(runs):
+            yield
+    finally:
+        for run in runs:
+            log.info("MLflow run %s ended %s", run.run_id, run.status)
+            log.info("open it: `make ui`, then %s", run.url)
+        if population and runs:
+            ids = ",".join(run.run_id for run in runs)
+            log.info("continue them together: python -m walkers.train 'resume=[%s]'", ids)
+        elif runs and runs[0].status == tracking.KILLED:
+            log.info("continue it: python -m walkers.train resume=%s", runs[0].run_id)
+
+
+def _last_checkpoint(client, run_id: str, work_dir) -> dict:
+    folder = RunFolder.of(work_dir, run_id)
+    local = folder.resume_checkpoint
+    try:
+        uploaded = tracking.download_checkpoint(client, run_id, "last.pt", folder.download)
+    except CheckpointError:  # never uploaded (e.g. the store was down): the local copy will do
+        if not local.is_file():
+            raise
+        uploaded = None
+    uploaded = checkpoints.load(uploaded) if uploaded is not None else None  # damaged: an error
+    if local.is_file():
+        whole = checkpoints.load(local)
+        if uploaded is None or whole["trainer"]["step"] >= uploaded["trainer"]["step"]:
+            log.info("resuming from %s (with its replay buffer, if the agent has one)", local)
+            return whole
+        log.warning(
+            "%s is at step %d, MLflow's last.pt at step %d: resuming from MLflow's",
+            local,
+            whole["trainer"]["step"],
+            uploaded["trainer"]["step"],
+        )
+    return uploaded
+
+
+def _why_not_continued(client, cfg: DictConfig, runs: list) -> str | None:
+    """Why the earlier attempt's runs (one per member, None where missing) cannot go on."""
+    if any(r is None for r in runs):
+        return f"which are not the {cfg.population} members of a population"
+    steps = set()
+    for run in runs:
+        run_id = run.info.run_id
+        uploaded = [a.path for a in client.list_artifacts(run_id, "checkpoints")]
+        local = RunFolder.of(cfg.work_dir, run_id).resume_checkpoint
+        if "checkpoints/last.pt" not in uploaded and not local.is_file():
+            return "which ended without a checkpoint"
+        if len(runs) > 1:  # members continue together only from one step
+            steps.add(_last_checkpoint(client, run_id, cfg.work_dir)["trainer"]["step"])
+    if len(steps) > 1:
+        return f"whose members' checkpoints are at different steps {sorted(steps)}"
+    return None

@@ -74,6 +74,9 @@ bench-learning: $(STAMP)  ## walkers vs its Stable-Baselines3 twins through the 
 bench-scale: $(STAMP)  ## a seed study through joblib vs a loopback Ray cluster of 1 and 2 workers; the study and a sweep with N workers on paper
 	$(PY) benchmarks/bench_scale.py $(ARGS)
 
+menus: $(STAMP)  ## rewrite conf/algo/*.yaml from the hyperparameters declared in walkers/agents/schemas.py
+	$(PY) -m walkers.agents.schemas
+
 lint: $(STAMP)  ## ruff (style, common bugs) and lint-imports (imports point down the layers)
 	$(VENV)/bin/ruff check walkers tests $(wildcard benchmarks)
 	$(VENV)/bin/lint-imports
@@ -85,4 +88,4 @@ clean:  ## remove run outputs (mlflow.db, mlartifacts/, outputs/, multirun/, .wa
 	rm -rf mlflow.db mlruns mlartifacts outputs multirun .walkers reports .pytest_cache .ruff_cache
 	find . -name __pycache__ -type d -prune -not -path './$(VENV)/*' -exec rm -rf {} +
 
-.PHONY: help install train ab ab-all offline compare plan test test-cluster chaos stack bench bench-throughput bench-learning bench-scale lint ui clean
+.PHONY: help install train ab ab-all offline compare plan test test-cluster chaos stack bench bench-throughput bench-learning bench-scale menus lint ui clean

@@ -35,6 +35,7 @@ from walkers.agents.ddpg import DDPG
 from walkers.agents.ppo import PPO
 from walkers.agents.reinforce import Reinforce
 from walkers.agents.sac import SAC
+from walkers.agents.schemas import defaults_for
 from walkers.agents.td3 import TD3
 from walkers.data.replay import DATA_FIELDS, ReplayBuffer
 from walkers.training.envs import env_spaces
@@ -49,7 +50,8 @@ class WalkersLoop:
 
     def __init__(self, agent_cls, **kwargs):
         self.env = gym.make(ENV_ID)
-        self.agent = agent_cls(**env_spaces(self.env), seed=0, **kwargs)
+        spaces = env_spaces(self.env)
+        self.agent = agent_cls(**spaces, seed=0, **defaults_for(agent_cls, **kwargs))
         self.obs, _ = self.env.reset(seed=0)
 
     def run(self, steps: int) -> None:
@@ -68,7 +70,8 @@ class PopulationLoop:
 
     def __init__(self, k: int, **kwargs):
         self.envs = [gym.make(ENV_ID) for _ in range(k)]
-        self.agent = TD3(**env_spaces(self.envs[0]), seed=0, population=k, **kwargs)
+        spaces = env_spaces(self.envs[0])
+        self.agent = TD3(**spaces, seed=0, population=k, **defaults_for(TD3, **kwargs))
         self.obs = np.stack([env.reset(seed=i)[0] for i, env in enumerate(self.envs)])
         self.env_steps_per_step = k
 
@@ -200,9 +203,7 @@ def contenders(only: str | None = None) -> dict:
         "walkers TD3 K=4": lambda: PopulationLoop(4, hidden_sizes=[HIDDEN, HIDDEN], **common),
         # the same cores as processes: one seed (or a population of 2) per core, 1 thread each
         "2 procs x TD3": lambda: ParallelLoops(2, hidden_sizes=[HIDDEN, HIDDEN], **common),
-        "2 procs x TD3 K=2": lambda: ParallelLoops(
-            2, k=2, hidden_sizes=[HIDDEN, HIDDEN], **common
-        ),
+        "2 procs x TD3 K=2": lambda: ParallelLoops(2, k=2, hidden_sizes=[HIDDEN, HIDDEN], **common),
     }
     try:
         import stable_baselines3  # noqa: F401
@@ -291,8 +292,7 @@ def main():
     )
     buffer = ReplayBuffer(1_000_000, obs_dim, act_dim, torch.device("cpu"))
     nbytes = sum(
-        getattr(buffer, name).numel() * getattr(buffer, name).element_size()
-        for name in DATA_FIELDS
+        getattr(buffer, name).numel() * getattr(buffer, name).element_size() for name in DATA_FIELDS
     )
     print(f"Replay buffer, 1M {ENV_ID} transitions, float32: {nbytes / 1e6:.0f} MB preallocated.")
 

@@ -24,6 +24,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from walkers.agents.base import Transition
+from walkers.agents.schemas import defaults_for
 from walkers.agents.td3 import TD3
 
 OBS, ACT, BATCH, CAPACITY = 17, 6, 256, 100_000
@@ -93,10 +94,8 @@ def walkers_update(device: torch.device, compile: bool = False):
         OBS,
         [-1.0] * ACT,
         [1.0] * ACT,
-        learning_starts=0,
-        buffer_size=CAPACITY,
-        compile=compile,
         device=str(device),
+        **defaults_for(TD3, learning_starts=0, buffer_size=CAPACITY, compile=compile),
     )
     rng = np.random.default_rng(0)
     for _ in range(CAPACITY // 10):

@@ -10,6 +10,7 @@ from tests.conftest import DESIGN_METRICS, TINY, all_runs, compose_cfg
 from walkers.agents.base import Transition
 from walkers.agents.ddpg import DDPG
 from walkers.agents.reinforce import Reinforce, returns_to_go
+from walkers.agents.schemas import defaults_for
 from walkers.train import train
 from walkers.training.envs import make_env
 
@@ -52,7 +53,7 @@ def test_ddpg_tutorial_variant_layernorm_critic_and_ou_noise(store):
 
 
 def test_ddpg_is_the_shared_core_with_one_critic():
-    agent = DDPG(3, [-2.0], [2.0], learning_starts=0, batch_size=8)
+    agent = DDPG(3, [-2.0], [2.0], **defaults_for(DDPG, learning_starts=0, batch_size=8))
     q = agent.critic(torch.zeros(5, 3), torch.zeros(5, 1))
     assert q.shape == (1, 5)  # one critic (TD3 has two)
     assert (agent.policy_delay, agent.policy_noise) == (1, 0.0)
@@ -64,7 +65,7 @@ def test_returns_to_go():
 
 def test_reinforce_nan_guard_skips_the_update_and_training_continues():
     env = make_env({"id": "Pendulum-v1", "max_episode_steps": 20})
-    agent = Reinforce(3, [-2.0], [2.0], episodes_per_update=1, seed=0)
+    agent = Reinforce(3, [-2.0], [2.0], seed=0, **defaults_for(Reinforce, episodes_per_update=1))
     obs, _ = env.reset(seed=0)
 
     def play_episode(reward_override=None):

@@ -8,6 +8,7 @@ import torch
 
 from tests.conftest import TINY, all_runs, compose_cfg
 from walkers.agents.base import Transition
+from walkers.agents.schemas import defaults_for
 from walkers.agents.td3 import TD3
 from walkers.train import train
 
@@ -20,13 +21,16 @@ def filled_td3(compile: bool, population: int) -> TD3:
         OBS,
         [-2.0] * ACT,
         [2.0] * ACT,
-        hidden_sizes=[32, 32],
-        batch_size=32,
-        learning_starts=0,
-        buffer_size=500,
         population=population,
-        compile=compile,
         seed=3,
+        **defaults_for(
+            TD3,
+            hidden_sizes=[32, 32],
+            batch_size=32,
+            learning_starts=0,
+            buffer_size=500,
+            compile=compile,
+        ),
     )
     rng = np.random.default_rng(0)
     for t in range(200):

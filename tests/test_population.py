@@ -10,6 +10,7 @@ import torch
 
 from tests.conftest import TINY, all_runs, compose_cfg, run_cli, signal_once_checkpointed
 from walkers.agents.base import Transition
+from walkers.agents.schemas import defaults_for
 from walkers.agents.td3 import TD3
 from walkers.errors import ConfigError
 from walkers.train import train
@@ -18,7 +19,9 @@ from walkers.training.checkpoints import agent_from_checkpoint
 from walkers.training.envs import make_env
 from walkers.training.validate import validate
 
-SMALL = dict(batch_size=16, learning_starts=20, hidden_sizes=[16, 16], buffer_size=1000)
+SMALL = defaults_for(
+    TD3, batch_size=16, learning_starts=20, hidden_sizes=[16, 16], buffer_size=1000
+)
 
 
 def feed(agent: TD3, rewards: np.ndarray, steps: int = 60) -> None:

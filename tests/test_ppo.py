@@ -14,6 +14,7 @@ from torch import nn
 from tests.conftest import TINY, all_runs, compose_cfg, new_store, run_cli
 from walkers.agents.base import Transition
 from walkers.agents.ppo import PPO, ROLLOUT_RESTART_TAG, clipped_surrogate, value_loss
+from walkers.agents.schemas import defaults_for
 from walkers.data.rollouts import Rollout, gae
 from walkers.errors import ConfigError
 from walkers.train import train
@@ -57,8 +58,8 @@ def test_gae_matches_the_hand_computed_trajectory_with_a_terminal_and_a_truncati
 
 def test_the_agent_bootstraps_a_truncation_from_its_own_next_state():
     """The same trajectory through the agent: which V(s') it bootstraps from is its own choice."""
-    agent = PPO(1, [-1.0], [1.0], n_steps=5, n_minibatches=1, gamma=0.5, gae_lambda=0.5,
-                normalize_obs=False, normalize_reward=False)  # fmt: skip
+    agent = PPO(1, [-1.0], [1.0], **defaults_for(PPO, n_steps=5, n_minibatches=1, gamma=0.5,
+                gae_lambda=0.5, normalize_obs=False, normalize_reward=False))  # fmt: skip
     agent.value = nn.Linear(1, 1)
     with torch.no_grad():  # V(s) = s
         agent.value.weight.fill_(1.0)
@@ -127,7 +128,8 @@ def _pendulum():
 
 
 def _small_agent(seed: int = 0, **kw) -> PPO:
-    return PPO(3, [-2.0], [2.0], n_steps=64, n_minibatches=4, n_epochs=2, seed=seed, **kw)
+    small = defaults_for(PPO, n_steps=64, n_minibatches=4, n_epochs=2, **kw)
+    return PPO(3, [-2.0], [2.0], seed=seed, **small)
 
 
 def test_same_seed_same_agent_another_seed_another():

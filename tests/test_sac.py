@@ -15,6 +15,7 @@ from tests.conftest import DESIGN_METRICS, TINY, all_runs, compose_cfg, new_stor
 from walkers.agents.base import Transition
 from walkers.agents.networks import EnsembleGaussianActor, tanh_log_det_jacobian
 from walkers.agents.sac import SAC
+from walkers.agents.schemas import defaults_for
 from walkers.train import train
 from walkers.training import checkpoints
 from walkers.training.checkpoints import agent_from_checkpoint
@@ -22,7 +23,9 @@ from walkers.training.collection import collect
 from walkers.training.envs import make_env
 from walkers.training.policy_replay import evaluate
 
-SMALL = dict(batch_size=16, learning_starts=20, hidden_sizes=[16, 16], buffer_size=1000)
+SMALL = defaults_for(
+    SAC, batch_size=16, learning_starts=20, hidden_sizes=[16, 16], buffer_size=1000
+)
 OBS = 3
 
 
@@ -173,7 +176,9 @@ def test_a_nan_stays_in_its_member():
 
 def test_compiled_updates_follow_the_eager_ones():
     def filled(compile: bool) -> SAC:
-        agent = SAC(5, [-2.0] * 2, [2.0] * 2, population=2, compile=compile, seed=3, **SMALL)
+        agent = SAC(
+            5, [-2.0] * 2, [2.0] * 2, population=2, seed=3, **(SMALL | {"compile": compile})
+        )
         rng = np.random.default_rng(0)
         for t in range(100):
             obs, nxt = rng.normal(size=(2, 2, 5)).astype(np.float32)

@@ -1,1 +1,2 @@
-"""Agents. Each algorithm is one module here plus one ``conf/algo/*.yaml``."""
+"""Agents. Each algorithm is one module here, its hyperparameters declared in ``schemas.py``
+(the menu ``conf/algo/<name>.yaml`` is written from there: ``make menus``)."""

@@ -59,19 +59,19 @@ class ActorCritic(Agent):
         action_low: Sequence[float],
         action_high: Sequence[float],
         *,
-        lr: float = 3e-4,
-        batch_size: int = 256,
-        learning_starts: int = 25_000,
-        hidden_sizes: Sequence[int] = (256, 256),
-        gamma: float = 0.99,
-        tau: float = 0.005,
-        buffer_size: int = 1_000_000,
+        lr: float,
+        batch_size: int,
+        learning_starts: int,
+        hidden_sizes: Sequence[int],
+        gamma: float,
+        tau: float,
+        buffer_size: int,
         actor_lr: float | None = None,
         critic_lr: float | None = None,
-        critic_architecture: str = "mlp",
+        critic_architecture: str | None = None,
         critic_hidden_sizes: Sequence[int] | None = None,
         population: int = 1,
-        compile: bool = False,
+        compile: bool,
         device: str = "cpu",
         seed: int = 0,
     ):
@@ -89,7 +89,11 @@ class ActorCritic(Agent):
         ).to(self.device)
         critic_hidden = hidden_sizes if critic_hidden_sizes is None else critic_hidden_sizes
         self.critic = make_critic(
-            critic_architecture, obs_dim, act_dim, critic_hidden, self.num_critics * self.population
+            critic_architecture or "mlp",  # TD3's and SAC's; DDPG declares the choice
+            obs_dim,
+            act_dim,
+            critic_hidden,
+            self.num_critics * self.population,
         ).to(self.device)
         self.actor_target = (
             copy.deepcopy(self.actor).requires_grad_(False) if self.uses_actor_target else None

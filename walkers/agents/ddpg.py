@@ -8,9 +8,9 @@ from walkers.agents.td3 import TD3
 class DDPG(TD3):
     """TD3 with its three ideas off (the class attributes below): one critic, no target policy
     smoothing, the actor and targets updated at every critic update. Its constructor takes no
-    ``policy_noise``, ``noise_clip`` or ``policy_delay``.
+    ``policy_noise``, ``noise_clip`` or ``policy_delay`` (TD3's refuses them for DDPG).
 
-    Otherwise TD3 (documented in ``conf/algo/ddpg.yaml``), including the tutorial's variants:
+    Otherwise TD3 (declared in :mod:`walkers.agents.schemas`), including the tutorial's variants:
     ``critic_architecture=layernorm_branch`` (state layers ``critic_hidden_sizes`` of Linear +
     LayerNorm + ReLU, the action merged at the last hidden layer) and ``noise_type=ou``
     (Ornstein-Uhlenbeck exploration).
@@ -19,28 +19,3 @@ class DDPG(TD3):
     num_critics = 1
     target_smoothing = False
     delayed_updates = False
-
-    def __init__(
-        self,
-        obs_dim,
-        action_low,
-        action_high,
-        *,
-        exploration_noise: float = 0.1,
-        noise_type: str = "gaussian",
-        **core,
-    ):
-        for knob in ("policy_noise", "noise_clip", "policy_delay"):
-            if knob in core:
-                raise TypeError(
-                    f"DDPG.__init__() got an unexpected keyword argument {knob!r} "
-                    "(DDPG is TD3 without target smoothing or delayed updates)"
-                )
-        super().__init__(
-            obs_dim,
-            action_low,
-            action_high,
-            exploration_noise=exploration_noise,
-            noise_type=noise_type,
-            **core,
-        )

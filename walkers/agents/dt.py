@@ -30,7 +30,7 @@ from walkers.seeding import stream_seeds
 
 
 class DecisionTransformer(Agent):
-    """Defaults are the reference implementation's (see conf/algo/dt.yaml)."""
+    """Hyperparameters: declared, with the reference defaults, in walkers.agents.schemas."""
 
     offline = True
 
@@ -41,19 +41,19 @@ class DecisionTransformer(Agent):
         action_high: Sequence[float],
         *,
         dataset=None,  # walkers.data.datasets.OfflineData; None when only restoring a policy to act
-        context_length: int = 20,
-        embed_dim: int = 128,
-        n_layers: int = 3,
-        n_heads: int = 1,
-        dropout: float = 0.1,
-        lr: float = 1e-4,
-        weight_decay: float = 1e-4,
-        warmup_steps: int = 10_000,
-        batch_size: int = 64,
-        grad_clip: float = 0.25,
-        max_episode_steps: int = 1000,
-        return_scale: float = 1000.0,
-        target_returns: Sequence[float] | None = None,
+        context_length: int,
+        embed_dim: int,
+        n_layers: int,
+        n_heads: int,
+        dropout: float,
+        lr: float,
+        weight_decay: float,
+        warmup_steps: int,
+        batch_size: int,
+        grad_clip: float,
+        max_episode_steps: int,
+        return_scale: float,
+        target_returns: Sequence[float] | None,
         device: str = "cpu",
         seed: int = 0,
     ):

@@ -32,7 +32,7 @@ from walkers.data.replay import Batch
 
 class SAC(ActorCritic):
     """Soft Actor-Critic; hyperparameters are the core's (``lr``, ``batch_size``, ``tau``, ...)
-    plus the temperature's, documented in ``conf/algo/sac.yaml``."""
+    plus the temperature's, declared in :mod:`walkers.agents.schemas`."""
 
     actor_class = EnsembleGaussianActor
     uses_actor_target = False  # the reference SAC (v2) has none: a' is sampled from pi itself
@@ -45,14 +45,12 @@ class SAC(ActorCritic):
         action_low,
         action_high,
         *,
-        lr: float = 3e-4,
-        alpha_lr: float | None = None,
-        alpha_init: float = 1.0,
-        target_entropy: float | None = None,
+        lr: float,
+        alpha_lr: float | None,
+        alpha_init: float,
+        target_entropy: float | None,
         **hyperparameters,
     ):
-        if alpha_init <= 0:
-            raise ValueError(f"alpha_init={alpha_init!r} is not allowed: must be a number > 0")
         super().__init__(obs_dim, action_low, action_high, lr=lr, **hyperparameters)
         act_dim = len(self.action_low)
         self.target_entropy = -float(act_dim) if target_entropy is None else float(target_entropy)

@@ -29,8 +29,11 @@ from walkers.data.replay import Batch
 
 class TD3(ActorCritic):
     """Clipped double-Q (two critics), target policy smoothing, delayed policy updates; other
-    hyperparameters (``lr``, ``batch_size``, ``tau``, ...) are the core's. Each is documented in
-    ``conf/algo/td3.yaml``; the defaults are the paper's."""
+    hyperparameters (``lr``, ``batch_size``, ``tau``, ...) are the core's. Each is declared, with
+    its default (the paper's) and doc, in :mod:`walkers.agents.schemas`.
+
+    ``policy_noise``/``noise_clip`` (smoothing) and ``policy_delay`` are required while the class
+    uses the idea; a subclass that turns it off (DDPG) takes none."""
 
     num_critics = 2  # clipped double-Q: the target takes the min of the twins
     target_smoothing = True  # clipped noise on the target action
@@ -42,19 +45,30 @@ class TD3(ActorCritic):
         action_low,
         action_high,
         *,
-        policy_noise: float = 0.2,
-        noise_clip: float = 0.5,
-        policy_delay: int = 2,
-        exploration_noise: float = 0.1,
-        noise_type: str = "gaussian",
+        exploration_noise: float,
+        noise_type: str | None = None,
+        policy_noise: float | None = None,
+        noise_clip: float | None = None,
+        policy_delay: int | None = None,
         **core,
     ):
-        if noise_type not in NOISE_TYPES:
-            raise ValueError(f"noise_type={noise_type!r} is not one of {sorted(NOISE_TYPES)}")
+        used = {"policy_noise": self.target_smoothing, "noise_clip": self.target_smoothing}
+        used["policy_delay"] = self.delayed_updates
+        given = {"policy_noise": policy_noise, "noise_clip": noise_clip}
+        given["policy_delay"] = policy_delay
+        for knob, value in given.items():
+            if used[knob] and value is None:
+                raise TypeError(f"{type(self).__name__}.__init__() needs {knob}")
+            if not used[knob] and value is not None:
+                raise TypeError(
+                    f"{type(self).__name__}.__init__() got an unexpected keyword argument "
+                    f"{knob!r} ({type(self).__name__} turns that idea of TD3 off)"
+                )
         self.policy_noise = policy_noise if self.target_smoothing else 0.0
         self.noise_clip = noise_clip if self.target_smoothing else 0.0
         self.policy_delay = policy_delay if self.delayed_updates else 1
-        self.exploration_sigma, self.noise_type = exploration_noise, noise_type
+        # TD3 explores with the paper's Gaussian noise; DDPG declares noise_type (gaussian | ou)
+        self.exploration_sigma, self.noise_type = exploration_noise, noise_type or "gaussian"
         super().__init__(obs_dim, action_low, action_high, **core)
         # exploration and smoothing noise are fractions of the action half-range
         self.noise_scale = (self.action_high - self.action_low) / 2

@@ -1,17 +1,26 @@
 """Check a composed config before any work starts (and before an MLflow run exists).
 
-Each rule names a dotted key, a predicate and, for the error message, what is allowed. Keys that
-an algorithm does not have are skipped, so one table serves every algorithm.
+The run's settings are checked by :data:`RULES` (a dotted key and what is allowed), the
+algorithm's hyperparameters against their one declaration (:mod:`walkers.agents.schemas`), then
+what needs several keys at once. Every error is one line naming the key, the value and what is
+allowed.
 """
 
 from __future__ import annotations
 
-from numbers import Real
-
 from omegaconf import DictConfig, OmegaConf
 
+from walkers.agents.hyperparameters import (
+    NON_NEGATIVE_INT,
+    NUMBER,
+    POSITIVE_INT,
+    Allowed,
+    or_null,
+    problems,
+)
 from walkers.agents.sb3_arguments import NotExpressible, sb3_arguments
 from walkers.agents.sb3_twin import import_sb3
+from walkers.agents.schemas import SCHEMAS
 from walkers.errors import ConfigError
 from walkers.metrics import METRIC_DIRECTIONS
 
@@ -20,116 +29,36 @@ DEVICES = ("auto", "cpu", "cuda")
 IMPLEMENTATIONS = ("walkers", "sb3")
 
 
-def _int(v) -> bool:
-    return isinstance(v, int) and not isinstance(v, bool)
+def _listed(choices) -> Allowed:
+    return Allowed(lambda v: v in choices, "one of " + ", ".join(choices))
 
 
-def _number(v) -> bool:
-    return isinstance(v, Real) and not isinstance(v, bool)
-
-
-def positive_int(v) -> bool:
-    return _int(v) and v > 0
-
-
-def non_negative_int(v) -> bool:
-    return _int(v) and v >= 0
-
-
-def positive(v) -> bool:
-    return _number(v) and v > 0
-
-
-def non_negative(v) -> bool:
-    return _number(v) and v >= 0
-
-
-def unit_interval(v) -> bool:
-    return _number(v) and 0 < v <= 1
-
-
-def positive_or_null(v) -> bool:
-    return v is None or positive(v)
-
-
-def layer_sizes(v) -> bool:
-    return isinstance(v, list) and len(v) > 0 and all(positive_int(x) for x in v)
-
-
-RULES: list[tuple[str, callable, str]] = [
-    ("seed", non_negative_int, "an integer >= 0"),
-    ("total_steps", positive_int, "an integer > 0"),
-    ("eval_every", positive_int, "an integer > 0"),
-    ("eval_episodes", positive_int, "an integer > 0"),
-    ("checkpoint_every", positive_int, "an integer > 0"),
-    ("log_every", positive_int, "an integer > 0"),
-    ("video_every", non_negative_int, "an integer >= 0 (0: no videos)"),
-    ("divergence_patience", positive_int, "an integer > 0"),
-    ("population", positive_int, "an integer > 0"),
-    ("torch_threads", lambda v: v is None or positive_int(v), "null or an integer > 0"),
-    ("device", lambda v: v in DEVICES, "one of " + ", ".join(DEVICES)),
-    ("impl", lambda v: v in IMPLEMENTATIONS, "one of " + ", ".join(IMPLEMENTATIONS)),
-    (
-        "optimized_metric",
-        lambda v: v in OPTIMIZABLE_METRICS,
-        "one of " + ", ".join(OPTIMIZABLE_METRICS),
-    ),
-    ("algo.lr", positive, "a number > 0"),
-    ("algo.actor_lr", positive_or_null, "null or a number > 0"),
-    ("algo.critic_lr", positive_or_null, "null or a number > 0"),
-    ("algo.batch_size", positive_int, "an integer > 0"),
-    ("algo.buffer_size", positive_int, "an integer > 0"),
-    ("algo.learning_starts", non_negative_int, "an integer >= 0"),
-    ("algo.hidden_sizes", layer_sizes, "a non-empty list of integers > 0, e.g. [256,256]"),
-    (
-        "algo.critic_hidden_sizes",
-        lambda v: v is None or layer_sizes(v),
-        "null or a list of integers > 0",
-    ),
-    ("algo.gamma", unit_interval, "a number in (0, 1]"),
-    ("algo.tau", unit_interval, "a number in (0, 1]"),
-    ("algo.policy_delay", positive_int, "an integer > 0"),
-    ("algo.policy_noise", non_negative, "a number >= 0"),
-    ("algo.noise_clip", non_negative, "a number >= 0"),
-    ("algo.exploration_noise", non_negative, "a number >= 0"),
-    ("algo.alpha_init", positive, "a number > 0"),
-    ("algo.alpha_lr", positive_or_null, "null or a number > 0"),
-    ("algo.target_entropy", lambda v: v is None or _number(v), "null (-|A|) or a number"),
-    ("algo.compile", lambda v: isinstance(v, bool), "true or false"),
-    ("algo.context_length", positive_int, "an integer > 0"),
-    ("algo.embed_dim", positive_int, "an integer > 0"),
-    ("algo.n_layers", positive_int, "an integer > 0"),
-    ("algo.n_heads", positive_int, "an integer > 0"),
-    ("algo.dropout", lambda v: _number(v) and 0 <= v < 1, "a number in [0, 1)"),
-    ("algo.weight_decay", non_negative, "a number >= 0"),
-    ("algo.warmup_steps", non_negative_int, "an integer >= 0"),
-    ("algo.grad_clip", positive, "a number > 0"),
-    ("algo.return_scale", positive, "a number > 0"),
-    ("algo.max_episode_steps", positive_int, "an integer > 0"),
-    ("algo.max_grad_norm", positive_or_null, "null or a number > 0"),
-    ("algo.n_steps", positive_int, "an integer > 0"),
-    ("algo.n_epochs", positive_int, "an integer > 0"),
-    ("algo.n_minibatches", positive_int, "an integer > 0"),
-    ("algo.gae_lambda", lambda v: _number(v) and 0 <= v <= 1, "a number in [0, 1]"),
-    ("algo.clip_coef", positive, "a number > 0"),
-    ("algo.vf_coef", non_negative, "a number >= 0"),
-    ("algo.ent_coef", non_negative, "a number >= 0"),
-    ("algo.target_kl", positive_or_null, "null or a number > 0"),
-    ("algo.activation", lambda v: v in ("tanh", "relu"), "tanh or relu"),
-    ("algo.adam_eps", positive, "a number > 0"),
-    ("algo.clip_obs", positive, "a number > 0"),
-    ("algo.clip_reward", positive, "a number > 0"),
-    (
-        "algo.target_returns",
-        lambda v: v is None or (isinstance(v, list) and len(v) > 0 and all(map(_number, v))),
-        "null (the dataset's best return) or a non-empty list of numbers, e.g. [5000,2500]",
-    ),
-    ("env.max_episode_steps", lambda v: v is None or positive_int(v), "null or an integer > 0"),
-    ("env.threshold", _number, "a number"),
-    ("env.learning_starts", non_negative_int, "an integer >= 0"),
+#: The run's own settings (``conf/train.yaml``) and the env's; an algorithm's hyperparameters
+#: are checked against their declarations (:mod:`walkers.agents.schemas`).
+RULES: list[tuple[str, Allowed]] = [
+    ("seed", NON_NEGATIVE_INT),
+    ("total_steps", POSITIVE_INT),
+    ("eval_every", POSITIVE_INT),
+    ("eval_episodes", POSITIVE_INT),
+    ("checkpoint_every", POSITIVE_INT),
+    ("log_every", POSITIVE_INT),
+    ("video_every", Allowed(NON_NEGATIVE_INT.ok, "an integer >= 0 (0: no videos)")),
+    ("divergence_patience", POSITIVE_INT),
+    ("population", POSITIVE_INT),
+    ("torch_threads", or_null(POSITIVE_INT)),
+    ("device", _listed(DEVICES)),
+    ("impl", _listed(IMPLEMENTATIONS)),
+    ("optimized_metric", _listed(OPTIMIZABLE_METRICS)),
+    ("env.max_episode_steps", or_null(POSITIVE_INT)),
+    ("env.threshold", NUMBER),
+    ("env.learning_starts", NON_NEGATIVE_INT),
 ]
 
 _MISSING = object()
+
+
+def _algo_values(cfg: DictConfig) -> dict:
+    return OmegaConf.to_container(cfg.algo, resolve=True)
 
 
 def is_offline(cfg: DictConfig) -> bool:
@@ -196,13 +125,16 @@ def check(key: str, value, ok: bool, allowed: str) -> None:
 
 def validate(cfg: DictConfig) -> None:
     """Raise :class:`ConfigError` naming the first bad key, its value and what is allowed."""
-    for key, predicate, allowed in RULES:
+    for key, allowed in RULES:
         value = OmegaConf.select(cfg, key, default=_MISSING)
         if value is _MISSING:
             continue
         if OmegaConf.is_config(value):
             value = OmegaConf.to_container(value, resolve=True)
-        check(key, value, predicate(value), allowed)
+        check(key, value, allowed.ok(value), allowed.text)
+    schema = SCHEMAS.get(cfg.algo.get("name"))
+    if schema is not None and (problem := problems(schema, _algo_values(cfg))):
+        raise ConfigError(problem)
     check(
         "eval_every",
         cfg.eval_every,

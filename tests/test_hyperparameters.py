@@ -1,0 +1,110 @@
+"""Each hyperparameter declared once (walkers/agents/schemas.py): the yaml menus are written from
+the declarations, the config check is derived from them, and the agents' constructors carry no
+defaults of their own."""
+
+from __future__ import annotations
+
+import inspect
+import shutil
+import subprocess
+import sys
+from dataclasses import fields
+
+import pytest
+from hydra.utils import get_class
+
+from tests.conftest import compose_cfg
+from walkers import PROJECT_ROOT
+from walkers.agents.ddpg import DDPG
+from walkers.agents.schemas import SCHEMAS, defaults_for, menu, write_menus
+from walkers.agents.td3 import TD3
+from walkers.errors import ConfigError
+from walkers.training.validate import validate
+
+DECLARED = [(name, f.name) for name, schema in SCHEMAS.items() for f in fields(schema)]
+
+
+def test_the_menus_are_written_from_the_declarations():
+    assert write_menus(check=True) == []
+    result = subprocess.run(
+        [sys.executable, "-m", "walkers.agents.schemas", "--check"],
+        cwd=PROJECT_ROOT,
+        capture_output=True,
+        text=True,
+    )
+    assert result.returncode == 0, result.stdout + result.stderr
+
+
+def test_a_menu_edited_by_hand_is_found_and_rewritten(tmp_path):
+    shutil.copytree(PROJECT_ROOT / "conf" / "algo", tmp_path / "algo")
+    td3 = tmp_path / "algo" / "td3.yaml"
+    td3.write_text(td3.read_text().replace("policy_delay: 2 ", "policy_delay: 3 "))
+    assert write_menus(tmp_path, check=True) == [str(td3)]
+    assert "policy_delay: 3" in td3.read_text()  # a check writes nothing
+    assert write_menus(tmp_path) == [str(td3)]
+    assert write_menus(tmp_path, check=True) == []
+    assert td3.read_text() == menu(SCHEMAS["td3"])
+
+
+@pytest.mark.parametrize("name", list(SCHEMAS))
+def test_the_composed_config_is_the_declared_one(name):
+    """Every key of ``algo=<name>`` is declared and every declaration is a key, with the declared
+    default (env-dependent ones read from the env when it sets them)."""
+    cfg = compose_cfg([f"algo={name}", "env=walker2d"])
+    composed = {k: v for k, v in cfg.algo.items() if k not in ("_target_", "name")}
+    schema = SCHEMAS[name]
+    assert cfg.algo._target_ == schema.AGENT
+    declared = {f.name: f for f in fields(schema)}
+    assert set(composed) == set(declared)
+    default = schema()
+    for key, f in declared.items():
+        if f.metadata["follows"]:
+            assert composed[key] == cfg[f.metadata["follows"]]
+        elif f.metadata["env_key"] and f.metadata["env_key"] in cfg.env:
+            assert composed[key] == cfg.env[f.metadata["env_key"]]
+        else:
+            value = composed[key]
+            value = (
+                list(value) if hasattr(value, "__len__") and not isinstance(value, str) else value
+            )
+            assert value == getattr(default, key), key
+
+
+@pytest.mark.parametrize("name,key", DECLARED, ids=[f"{n}.{k}" for n, k in DECLARED])
+def test_every_declared_hyperparameter_is_checked_in_one_line(name, key):
+    f = {f.name: f for f in fields(SCHEMAS[name])}[key]
+    cfg = compose_cfg([f"algo={name}", "env=pendulum", "total_steps=1000", "eval_every=500"])
+    cfg.algo[key] = "bad"
+    with pytest.raises(ConfigError) as error:
+        validate(cfg)
+    message = str(error.value)
+    assert message == f"algo.{key}='bad' is not allowed: must be {f.metadata['allowed'].text}"
+
+
+@pytest.mark.parametrize("name", list(SCHEMAS))
+def test_the_constructors_take_no_defaults_of_their_own(name):
+    """A declared hyperparameter has no default in any constructor that names it: none, or None
+    for "not given" (an idea the class turns off, e.g. DDPG's smoothing; TD3 and SAC have no
+    separate actor and critic learning rates)."""
+    schema = SCHEMAS[name]
+    agent_class = get_class(schema.AGENT)
+    named = 0
+    for cls in agent_class.__mro__:
+        if "__init__" not in vars(cls):
+            continue
+        parameters = inspect.signature(cls.__init__).parameters
+        for f in fields(schema):
+            if f.name in parameters:
+                named += 1
+                assert parameters[f.name].default in (inspect.Parameter.empty, None), f.name
+    assert named >= len(fields(schema))  # each is a constructor argument somewhere
+
+
+def test_ddpg_is_td3_without_its_three_ideas():
+    """TD3 needs its smoothing and delay; DDPG, which turns them off, refuses them."""
+    with pytest.raises(TypeError, match="needs policy_delay"):
+        TD3(3, [-1.0], [1.0], **{**defaults_for(TD3)} | {"policy_delay": None})
+    with pytest.raises(TypeError, match="'policy_noise'"):
+        DDPG(3, [-1.0], [1.0], **defaults_for(DDPG), policy_noise=0.2)
+    with pytest.raises(TypeError, match="no hyperparameter 'policy_noise'"):
+        defaults_for(DDPG, policy_noise=0.2)

@@ -1,0 +1,372 @@
+"""Each algorithm's hyperparameters, declared once (see :mod:`walkers.agents.hyperparameters`).
+
+A class's docstring heads its menu ``conf/algo/<name>.yaml``; a field's doc comments its value
+there. ``make menus`` rewrites the menus after a change here.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from walkers.agents.hyperparameters import (
+    BOOL,
+    DISCOUNT,
+    DROPOUT,
+    LAYERS,
+    NON_NEGATIVE,
+    NON_NEGATIVE_INT,
+    NUMBER,
+    NUMBERS,
+    POSITIVE,
+    POSITIVE_INT,
+    PROBABILITY,
+    Hyperparameters,
+    defaults,
+    hp,
+    menu,
+    one_of,
+    or_null,
+)
+from walkers.agents.networks import CRITIC_ARCHITECTURES
+from walkers.agents.noise import NOISE_TYPES
+from walkers.agents.policies import ACTIVATIONS
+
+COMPILE_DOC = (
+    "torch.compile the loss computations (on CUDA with CUDA graphs, for\n"
+    "launch-bound small updates); on CPU no measurable gain (make bench)"
+)
+
+
+@dataclass
+class OffPolicy(Hyperparameters):
+    """What the replay-based actor-critics (TD3, DDPG, SAC) share."""
+
+    lr: float = hp(3.0e-4, POSITIVE, "Adam learning rate, actor and critics")
+    batch_size: int = hp(256, POSITIVE_INT, "transitions per gradient step")
+    learning_starts: int = hp(
+        25_000,
+        NON_NEGATIVE_INT,
+        "uniform random actions (no updates) for this many env steps; short envs set "
+        "env.learning_starts",
+        env_key="learning_starts",
+    )
+    hidden_sizes: list[int] = hp([256, 256], LAYERS, "hidden layers of actor and critics")
+    gamma: float = hp(0.99, DISCOUNT, "discount")
+    tau: float = hp(0.005, DISCOUNT, "target networks: theta' <- tau * theta + (1 - tau) * theta'")
+    buffer_size: int = hp(1_000_000, POSITIVE_INT, "replay buffer capacity (transitions)")
+    compile: bool = hp(False, BOOL, COMPILE_DOC)
+
+
+@dataclass
+class TD3Hyperparameters(OffPolicy):
+    """TD3 (Fujimoto et al. 2018, "Addressing Function Approximation Error in Actor-Critic
+    Methods"). Defaults are the reference implementation's."""
+
+    AGENT = "walkers.agents.td3.TD3"
+    NAME = "td3"
+    policy_noise: float = hp(
+        0.2,
+        NON_NEGATIVE,
+        "target policy smoothing noise std (fraction of the action range half-width)",
+    )
+    noise_clip: float = hp(0.5, NON_NEGATIVE, "clip of that noise (same units)")
+    policy_delay: int = hp(2, POSITIVE_INT, "critic updates per actor/target update")
+    exploration_noise: float = hp(
+        0.1,
+        NON_NEGATIVE,
+        "Gaussian exploration noise std (fraction of the action range half-width)",
+    )
+
+
+@dataclass
+class DDPGHyperparameters(OffPolicy):
+    """DDPG (Lillicrap et al. 2016) as "our DDPG" of the TD3 paper: TD3's networks and update
+    with one critic, no target policy smoothing and no policy delay."""
+
+    AGENT = "walkers.agents.ddpg.DDPG"
+    NAME = "ddpg"
+    lr: float = hp(3.0e-4, POSITIVE, "Adam learning rate, actor and critic")
+    hidden_sizes: list[int] = hp(
+        [256, 256],
+        LAYERS,
+        "hidden layers of the actor (and of the critic when critic_architecture=mlp)",
+    )
+    actor_lr: float | None = hp(
+        None,
+        or_null(POSITIVE, "lr"),
+        "set to give the actor its own learning rate (the tutorial's lr_actor)",
+    )
+    critic_lr: float | None = hp(
+        None,
+        or_null(POSITIVE, "lr"),
+        "set to give the critic its own learning rate (the tutorial's lr_critic)",
+    )
+    critic_architecture: str = hp(
+        "mlp",
+        one_of(*CRITIC_ARCHITECTURES),
+        "mlp: TD3's critic (the tutorial's \"same structure\");\n"
+        "layernorm_branch: the tutorial's critic (state layers Linear+LayerNorm+ReLU,\n"
+        "action merged at the last hidden layer)",
+    )
+    critic_hidden_sizes: list[int] | None = hp(
+        None, or_null(LAYERS, "hidden_sizes"), "critic layers; null = hidden_sizes"
+    )
+    exploration_noise: float = hp(
+        0.1, NON_NEGATIVE, "exploration noise std (fraction of the action range half-width)"
+    )
+    noise_type: str = hp(
+        "gaussian",
+        one_of(*NOISE_TYPES),
+        "gaussian | ou (Ornstein-Uhlenbeck, theta 0.15, reset every episode)",
+    )
+
+
+@dataclass
+class SACHyperparameters(OffPolicy):
+    """SAC (Haarnoja et al. 2018, "Soft Actor-Critic Algorithms and Applications": the "v2" with a
+    learned temperature, twin critics and no value network). Defaults are the paper's
+    hyperparameter table (its appendix), except the warm-up (learning_starts): TD3's, so SAC and
+    TD3 arms of a study start alike (RL-Zoo and Spinning Up use 10k on MuJoCo, CleanRL 5k).
+    Fixed by the algorithm: two critics (clipped double-Q), actor and temperature updated every
+    gradient step, one gradient step per env step, log sigma clamped to [-20, 2], the policy's own
+    sample explores (no added noise), deterministic evaluation with tanh(mean)."""
+
+    AGENT = "walkers.agents.sac.SAC"
+    NAME = "sac"
+    lr: float = hp(3.0e-4, POSITIVE, "Adam learning rate: actor, critics and temperature")
+    alpha_init: float = hp(
+        1.0,
+        POSITIVE,
+        "initial entropy temperature alpha (learned from there; SB3, CleanRL: 1.0)",
+    )
+    alpha_lr: float | None = hp(
+        None,
+        or_null(POSITIVE, "lr"),
+        "the temperature's learning rate; null = lr (as the paper and SB3)",
+    )
+    target_entropy: float | None = hp(
+        None,
+        or_null(NUMBER, "-|A|"),
+        "the entropy alpha steers towards; null = -|A| (minus the action dimension)",
+    )
+
+
+@dataclass
+class PPOHyperparameters(Hyperparameters):
+    """PPO (Schulman et al. 2017, "Proximal Policy Optimization Algorithms"), continuous control.
+    Defaults are the reference values for MuJoCo (the paper's Table 3, OpenAI baselines ppo2's
+    mujoco defaults, CleanRL ppo_continuous_action.py); see walkers/agents/ppo.py."""
+
+    AGENT = "walkers.agents.ppo.PPO"
+    NAME = "ppo"
+    lr: float = hp(3.0e-4, POSITIVE, "Adam learning rate (policy and value share one optimizer)")
+    anneal_lr: bool = hp(
+        True, BOOL, "anneal the learning rate linearly to 0 over the run's total_steps"
+    )
+    total_steps: int | None = hp(
+        None,
+        or_null(POSITIVE_INT, "no annealing horizon"),
+        "the run's budget, for the annealing (follows total_steps on resume)",
+        follows="total_steps",
+    )
+    adam_eps: float = hp(
+        1.0e-5, POSITIVE, "Adam epsilon (the reference's; torch's default is 1e-8)"
+    )
+    n_steps: int = hp(2048, POSITIVE_INT, "env steps per rollout (one update per rollout)")
+    n_epochs: int = hp(10, POSITIVE_INT, "passes over each rollout")
+    n_minibatches: int = hp(
+        32,
+        POSITIVE_INT,
+        "shuffled minibatches per pass: 2048 / 32 = 64 steps each (SB3's batch_size)",
+    )
+    gamma: float = hp(0.99, DISCOUNT, "discount")
+    gae_lambda: float = hp(
+        0.95,
+        PROBABILITY,
+        "GAE(lambda) bias-variance trade-off (1: Monte-Carlo, 0: one-step TD)",
+    )
+    clip_coef: float = hp(
+        0.2,
+        POSITIVE,
+        "epsilon of the clipped surrogate: the ratio pi/pi_old is clipped to [1-eps, 1+eps]",
+    )
+    clip_value_loss: bool = hp(
+        True,
+        BOOL,
+        "clip the value update around the old values by clip_coef (ppo2 and CleanRL do;\n"
+        "SB3 does not, and Andrychowicz et al. 2020 found it no help: false to turn off)",
+    )
+    vf_coef: float = hp(
+        0.5, NON_NEGATIVE, "weight of the value loss 1/2 (V - R)^2 in the total loss"
+    )
+    ent_coef: float = hp(
+        0.0, NON_NEGATIVE, "weight of the entropy bonus (0 for MuJoCo in the reference)"
+    )
+    max_grad_norm: float | None = hp(
+        0.5,
+        or_null(POSITIVE, "no clip"),
+        "global gradient-norm clip over both networks; null disables",
+    )
+    target_kl: float | None = hp(
+        None,
+        or_null(POSITIVE, "never"),
+        "stop a rollout's epochs early when the mean approx KL of an epoch exceeds this; "
+        "null: never",
+    )
+    normalize_advantages: bool = hp(True, BOOL, "standardize advantages within each minibatch")
+    hidden_sizes: list[int] = hp(
+        [64, 64], LAYERS, "hidden layers of the policy mean and of the (separate) value network"
+    )
+    activation: str = hp("tanh", one_of(*ACTIVATIONS), "tanh (the reference) | relu")
+    log_std_init: float = hp(
+        0.0,
+        NUMBER,
+        "initial log-std of the Gaussian policy (std 1), state-independent and learned",
+    )
+    normalize_obs: bool = hp(
+        True,
+        BOOL,
+        "observations normalized by running mean/std inside the agent (reported returns "
+        "stay the env's)",
+    )
+    clip_obs: float = hp(10.0, POSITIVE, "normalized observations clipped to [-clip_obs, clip_obs]")
+    normalize_reward: bool = hp(
+        True,
+        BOOL,
+        "rewards divided by the running std of the discounted return (learning signal only)",
+    )
+    clip_reward: float = hp(10.0, POSITIVE, "scaled rewards clipped to [-clip_reward, clip_reward]")
+
+
+@dataclass
+class ReinforceHyperparameters(Hyperparameters):
+    """REINFORCE (Williams 1992): Monte-Carlo policy gradient with a Gaussian policy; no critic.
+    The stabilizers the original study needed are on by default (walkers/agents/reinforce.py)."""
+
+    AGENT = "walkers.agents.reinforce.Reinforce"
+    NAME = "reinforce"
+    lr: float = hp(1.0e-3, POSITIVE, "Adam learning rate of the policy")
+    hidden_sizes: list[int] = hp(
+        [64, 64], LAYERS, "hidden layers of the policy mean (and of the baseline)"
+    )
+    gamma: float = hp(0.99, DISCOUNT, "discount of the returns-to-go")
+    episodes_per_update: int = hp(10, POSITIVE_INT, "complete episodes per gradient step")
+    normalize_returns: bool = hp(True, BOOL, "standardize returns (advantages) over each batch")
+    max_grad_norm: float | None = hp(
+        0.5, or_null(POSITIVE, "no clip"), "global gradient-norm clip; null disables"
+    )
+    log_std_init: float = hp(-0.5, NUMBER, "initial log standard deviation of the Gaussian policy")
+    log_std_min: float | None = hp(
+        -5.0,
+        or_null(NUMBER, "no bound"),
+        "log-std clamp (numerical stability); null disables the lower bound",
+    )
+    log_std_max: float | None = hp(1.0, or_null(NUMBER, "no bound"), "upper bound; null disables")
+    baseline: bool = hp(
+        False,
+        BOOL,
+        "learn a state-value baseline V(s) (advantage G - V); off = the study's plain REINFORCE",
+    )
+    baseline_lr: float = hp(1.0e-3, POSITIVE, "Adam learning rate of the baseline")
+    entropy_coef: float = hp(0.0, NON_NEGATIVE, "entropy bonus weight")
+
+
+@dataclass
+class DecisionTransformerHyperparameters(Hyperparameters):
+    """Decision Transformer (Chen et al. 2021, "Decision Transformer: Reinforcement Learning via
+    Sequence Modeling"): trained offline on a Minari dataset, e.g. one recorded by
+    `python -m walkers.collect`.
+      python -m walkers.train algo=dt env=walker2d dataset=walkers/walker2d/td3-expert
+    Defaults are the reference implementation's. This file sets the x-axis keys too: for an offline
+    algorithm total_steps, eval_every, checkpoint_every and log_every count gradient steps."""
+
+    AGENT = "walkers.agents.dt.DecisionTransformer"
+    NAME = "dt"
+    RUN_SETTINGS = {
+        "total_steps": (100_000, "gradient steps"),
+        "eval_every": (
+            10_000,
+            "gradient steps between evaluations (eval_episodes per target return)",
+        ),
+        "checkpoint_every": (10_000, "gradient steps between checkpoints"),
+    }
+    context_length: int = hp(
+        20, POSITIVE_INT, "K: steps of (return-to-go, state, action) the transformer sees"
+    )
+    embed_dim: int = hp(128, POSITIVE_INT, "token embedding width")
+    n_layers: int = hp(3, POSITIVE_INT, "transformer blocks")
+    n_heads: int = hp(1, POSITIVE_INT, "attention heads per block")
+    dropout: float = hp(0.1, DROPOUT, "on embeddings, attention and MLPs")
+    lr: float = hp(1.0e-4, POSITIVE, "AdamW learning rate (after warm-up)")
+    weight_decay: float = hp(1.0e-4, NON_NEGATIVE, "AdamW weight decay")
+    warmup_steps: int = hp(
+        10_000, NON_NEGATIVE_INT, "gradient steps of linear learning-rate warm-up"
+    )
+    batch_size: int = hp(64, POSITIVE_INT, "sequences per gradient step")
+    grad_clip: float = hp(0.25, POSITIVE, "gradient-norm clip")
+    max_episode_steps: int = hp(
+        1000, POSITIVE_INT, "timestep embeddings", env_key="max_episode_steps"
+    )
+    return_scale: float = hp(
+        1000,
+        POSITIVE,
+        "returns-to-go are divided by this (per env: conf/env/)",
+        env_key="return_scale",
+    )
+    target_returns: list[float] | None = hp(
+        None,
+        or_null(NUMBERS, "the dataset's best return"),
+        "returns to condition evaluations on; the first is the headline; null: the dataset's best",
+        env_key="target_returns",
+    )
+
+
+#: Each algorithm's declaration, by its name (``algo=<name>``).
+SCHEMAS: dict[str, type[Hyperparameters]] = {
+    schema.NAME: schema
+    for schema in (
+        TD3Hyperparameters,
+        DDPGHyperparameters,
+        SACHyperparameters,
+        PPOHyperparameters,
+        ReinforceHyperparameters,
+        DecisionTransformerHyperparameters,
+    )
+}
+
+
+def defaults_for(agent_class: type, **overrides) -> dict:
+    """``agent_class``'s hyperparameters as constructor arguments: their declared defaults, with
+    ``overrides`` (for code that builds an agent without a config: tests, benchmarks)."""
+    path = f"{agent_class.__module__}.{agent_class.__qualname__}"
+    (schema,) = [schema for schema in SCHEMAS.values() if schema.AGENT == path]
+    return defaults(schema, **overrides)
+
+
+def write_menus(conf_dir=None, check: bool = False) -> list[str]:
+    """Write each algorithm's menu ``<conf_dir>/algo/<name>.yaml`` (default: the project's
+    ``conf/``) from its declaration; with ``check``, write nothing. Returns the menus that were
+    out of step."""
+    from pathlib import Path
+
+    from walkers import PROJECT_ROOT
+
+    stale = []
+    for name, schema in SCHEMAS.items():
+        path = Path(conf_dir or PROJECT_ROOT / "conf") / "algo" / f"{name}.yaml"
+        text = menu(schema)
+        if not path.is_file() or path.read_text() != text:
+            stale.append(str(path))
+            if not check:
+                path.write_text(text)
+    return stale
+
+
+if __name__ == "__main__":  # make menus (--check: exit 1 when a menu is out of step)
+    import sys
+
+    checking = "--check" in sys.argv[1:]
+    for path in write_menus(check=checking):
+        print(f"{'out of step with walkers/agents/schemas.py' if checking else 'wrote'}: {path}")
+        if checking:
+            sys.exit(1)

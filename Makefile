@@ -75,7 +75,7 @@ bench-scale: $(STAMP)  ## a seed study through joblib vs a loopback Ray cluster 
 	$(PY) benchmarks/bench_scale.py $(ARGS)
 
 menus: $(STAMP)  ## rewrite conf/algo/*.yaml from the hyperparameters declared in walkers/agents/schemas.py
-	$(PY) -m walkers.agents.schemas
+	$(PY) -m walkers.agents.menus
 
 lint: $(STAMP)  ## ruff (style, common bugs) and lint-imports (imports point down the layers)
 	$(VENV)/bin/ruff check walkers tests $(wildcard benchmarks)

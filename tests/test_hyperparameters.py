@@ -16,7 +16,8 @@ from hydra.utils import get_class
 from tests.conftest import compose_cfg
 from walkers import PROJECT_ROOT
 from walkers.agents.ddpg import DDPG
-from walkers.agents.schemas import SCHEMAS, defaults_for, menu, write_menus
+from walkers.agents.menus import menu, write_menus
+from walkers.agents.schemas import SCHEMAS, defaults_for
 from walkers.agents.td3 import TD3
 from walkers.errors import ConfigError
 from walkers.training.validate import validate
@@ -27,7 +28,7 @@ DECLARED = [(name, f.name) for name, schema in SCHEMAS.items() for f in fields(s
 def test_the_menus_are_written_from_the_declarations():
     assert write_menus(check=True) == []
     result = subprocess.run(
-        [sys.executable, "-m", "walkers.agents.schemas", "--check"],
+        [sys.executable, "-m", "walkers.agents.menus", "--check"],
         cwd=PROJECT_ROOT,
         capture_output=True,
         text=True,

@@ -3,8 +3,8 @@
 Each algorithm's hyperparameters are a dataclass (:mod:`walkers.agents.schemas`) whose fields are
 made by :func:`hp`. Everything else is derived from that one declaration:
 
-- the readable menu ``conf/algo/<name>.yaml`` (written by ``make menus``; a test holds it in
-  step with the declarations), each value commented with its doc;
+- the readable menu ``conf/algo/<name>.yaml`` (:mod:`walkers.agents.menus`, ``make menus``; a
+  test holds it in step with the declarations), each value commented with its doc;
 - the check of a composed config (:func:`problems`, called by ``walkers.training.validate``):
   a one-line error naming the key, the bad value and what is allowed;
 - the agent's constructor arguments, which have no defaults of their own
@@ -18,8 +18,7 @@ checking the composed config here keeps walkers' one-line errors for every key a
 from __future__ import annotations
 
 import dataclasses
-import inspect
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from numbers import Real
 from typing import Any, ClassVar
@@ -115,55 +114,3 @@ def problems(schema: type[Hyperparameters], values: dict, prefix: str = "algo.")
         if not allowed.ok(value):
             return f"{prefix}{f.name}={value!r} is not allowed: must be {allowed.text}"
     return None
-
-
-# --- the menu: conf/algo/<name>.yaml ------------------------------------------------------------
-COMMENT_COLUMN = 25
-
-
-def yaml_value(value) -> str:
-    """``value`` as the menus write it (``3.0e-4``, ``1_000_000``, ``[256, 256]``, ``null``)."""
-    if value is None:
-        return "null"
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, int):
-        return f"{value:_}" if abs(value) >= 10_000 else str(value)
-    if isinstance(value, float):
-        if value != 0 and abs(value) <= 1e-3:
-            mantissa, exponent = f"{value:.1e}".split("e")
-            return f"{mantissa}e{int(exponent)}"
-        return repr(value)
-    if isinstance(value, Sequence) and not isinstance(value, str):
-        return "[" + ", ".join(yaml_value(v) for v in value) + "]"
-    return str(value)
-
-
-def _entry(key: str, value: str, doc: str, indent: str = "") -> list[str]:
-    head = f"{indent}{key}: {value}"
-    lines = doc.split("\n")
-    first = f"{head.ljust(COMMENT_COLUMN - 2)}  # {lines[0]}"
-    return [first] + [f"{' ' * (COMMENT_COLUMN - 1)} # {line}" for line in lines[1:]]
-
-
-def menu(schema: type[Hyperparameters]) -> str:
-    """The yaml menu of ``schema``: its docstring as the header, then each hyperparameter."""
-    header = [f"# {line}".rstrip() for line in inspect.cleandoc(schema.__doc__ or "").split("\n")]
-    nested = bool(schema.RUN_SETTINGS)  # a menu that sets run settings: at the config's root
-    indent = "  " if nested else ""
-    lines = ["# @package _global_"] if nested else []
-    lines += [*header, *(["algo:"] if nested else [])]
-    lines += [f"{indent}_target_: {schema.AGENT}", f"{indent}name: {schema.NAME}"]
-    for f in declared(schema):
-        default = getattr(schema(), f.name)
-        if f.metadata["follows"]:
-            value = "${" + f.metadata["follows"] + "}"
-        elif f.metadata["env_key"]:
-            fallback = default if isinstance(default, int) else yaml_value(default)
-            value = f"${{oc.select:env.{f.metadata['env_key']},{fallback}}}"
-        else:
-            value = yaml_value(default)
-        lines += _entry(f.name, value, f.metadata["doc"], indent)
-    for key, (value, doc) in schema.RUN_SETTINGS.items():
-        lines += _entry(key, yaml_value(value), doc)
-    return "\n".join(lines) + "\n"

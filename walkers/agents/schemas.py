@@ -1,7 +1,7 @@
 """Each algorithm's hyperparameters, declared once (see :mod:`walkers.agents.hyperparameters`).
 
 A class's docstring heads its menu ``conf/algo/<name>.yaml``; a field's doc comments its value
-there. ``make menus`` rewrites the menus after a change here.
+there. ``make menus`` (:mod:`walkers.agents.menus`) rewrites the menus after a change here.
 """
 
 from __future__ import annotations
@@ -23,7 +23,6 @@ from walkers.agents.hyperparameters import (
     Hyperparameters,
     defaults,
     hp,
-    menu,
     one_of,
     or_null,
 )
@@ -341,32 +340,3 @@ def defaults_for(agent_class: type, **overrides) -> dict:
     path = f"{agent_class.__module__}.{agent_class.__qualname__}"
     (schema,) = [schema for schema in SCHEMAS.values() if schema.AGENT == path]
     return defaults(schema, **overrides)
-
-
-def write_menus(conf_dir=None, check: bool = False) -> list[str]:
-    """Write each algorithm's menu ``<conf_dir>/algo/<name>.yaml`` (default: the project's
-    ``conf/``) from its declaration; with ``check``, write nothing. Returns the menus that were
-    out of step."""
-    from pathlib import Path
-
-    from walkers import PROJECT_ROOT
-
-    stale = []
-    for name, schema in SCHEMAS.items():
-        path = Path(conf_dir or PROJECT_ROOT / "conf") / "algo" / f"{name}.yaml"
-        text = menu(schema)
-        if not path.is_file() or path.read_text() != text:
-            stale.append(str(path))
-            if not check:
-                path.write_text(text)
-    return stale
-
-
-if __name__ == "__main__":  # make menus (--check: exit 1 when a menu is out of step)
-    import sys
-
-    checking = "--check" in sys.argv[1:]
-    for path in write_menus(check=checking):
-        print(f"{'out of step with walkers/agents/schemas.py' if checking else 'wrote'}: {path}")
-        if checking:
-            sys.exit(1)

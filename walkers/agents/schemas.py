@@ -35,6 +35,9 @@ COMPILE_DOC = (
     "launch-bound small updates); on CPU no measurable gain (make bench)"
 )
 
+#: A learning rate of its own, or null to share ``lr``.
+LR_OR_SHARED = or_null(POSITIVE, "lr")
+
 
 @dataclass
 class OffPolicy(Hyperparameters):
@@ -92,12 +95,12 @@ class DDPGHyperparameters(OffPolicy):
     )
     actor_lr: float | None = hp(
         None,
-        or_null(POSITIVE, "lr"),
+        LR_OR_SHARED,
         "set to give the actor its own learning rate (the tutorial's lr_actor)",
     )
     critic_lr: float | None = hp(
         None,
-        or_null(POSITIVE, "lr"),
+        LR_OR_SHARED,
         "set to give the critic its own learning rate (the tutorial's lr_critic)",
     )
     critic_architecture: str = hp(
@@ -140,7 +143,7 @@ class SACHyperparameters(OffPolicy):
     )
     alpha_lr: float | None = hp(
         None,
-        or_null(POSITIVE, "lr"),
+        LR_OR_SHARED,
         "the temperature's learning rate; null = lr (as the paper and SB3)",
     )
     target_entropy: float | None = hp(

@@ -52,18 +52,9 @@ class TD3(ActorCritic):
         policy_delay: int | None = None,
         **core,
     ):
-        used = {"policy_noise": self.target_smoothing, "noise_clip": self.target_smoothing}
-        used["policy_delay"] = self.delayed_updates
-        given = {"policy_noise": policy_noise, "noise_clip": noise_clip}
-        given["policy_delay"] = policy_delay
-        for knob, value in given.items():
-            if used[knob] and value is None:
-                raise TypeError(f"{type(self).__name__}.__init__() needs {knob}")
-            if not used[knob] and value is not None:
-                raise TypeError(
-                    f"{type(self).__name__}.__init__() got an unexpected keyword argument "
-                    f"{knob!r} ({type(self).__name__} turns that idea of TD3 off)"
-                )
+        smoothing = {"policy_noise": policy_noise, "noise_clip": noise_clip}
+        self._require(smoothing, self.target_smoothing)
+        self._require({"policy_delay": policy_delay}, self.delayed_updates)
         self.policy_noise = policy_noise if self.target_smoothing else 0.0
         self.noise_clip = noise_clip if self.target_smoothing else 0.0
         self.policy_delay = policy_delay if self.delayed_updates else 1
@@ -72,6 +63,18 @@ class TD3(ActorCritic):
         super().__init__(obs_dim, action_low, action_high, **core)
         # exploration and smoothing noise are fractions of the action half-range
         self.noise_scale = (self.action_high - self.action_low) / 2
+
+    def _require(self, knobs: dict, idea_used: bool) -> None:
+        """The knobs of an idea are given exactly when the class uses the idea."""
+        name = type(self).__name__
+        for knob, value in knobs.items():
+            if idea_used and value is None:
+                raise TypeError(f"{name}.__init__() needs {knob}")
+            if not idea_used and value is not None:
+                raise TypeError(
+                    f"{name}.__init__() got an unexpected keyword argument {knob!r} "
+                    f"({name} turns that idea of TD3 off)"
+                )
 
     # --- acting: a ~ clip(pi(s) + eps, low, high) ------------------------------------------------
     def exploration_noise(self, rng: np.random.Generator, act_dim: int) -> GaussianNoise:

@@ -109,3 +109,16 @@ def test_ddpg_is_td3_without_its_three_ideas():
         DDPG(3, [-1.0], [1.0], **defaults_for(DDPG), policy_noise=0.2)
     with pytest.raises(TypeError, match="no hyperparameter 'policy_noise'"):
         defaults_for(DDPG, policy_noise=0.2)
+
+
+@pytest.mark.parametrize(
+    "name,key,bound", [("td3", "batch_size", "buffer_size"), ("ppo", "n_minibatches", "n_steps")]
+)
+def test_a_hyperparameter_bounded_by_another_is_checked_against_it(name, key, bound):
+    cfg = compose_cfg([f"algo={name}", "env=pendulum", "total_steps=1000", "eval_every=500"])
+    cfg.algo[key], cfg.algo[bound] = 64, 32
+    with pytest.raises(ConfigError, match=rf"^algo.{key}=64 is not allowed: must be at most "
+                       rf"algo.{bound} \(32\)"):  # fmt: skip
+        validate(cfg)
+    cfg.algo[bound] = 64
+    validate(cfg)  # equal is allowed

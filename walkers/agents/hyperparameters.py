@@ -89,6 +89,8 @@ class Hyperparameters:
     NAME: ClassVar[str]
     #: run settings the algorithm's menu sets too (an offline algorithm counts gradient steps)
     RUN_SETTINGS: ClassVar[dict[str, tuple[Any, str]]] = {}
+    #: a hyperparameter bounded by another: ``{key: (bound key, why)}`` (key <= bound)
+    AT_MOST: ClassVar[dict[str, tuple[str, str]]] = {}
 
 
 def declared(schema: type[Hyperparameters]) -> list[dataclasses.Field]:
@@ -113,4 +115,10 @@ def problems(schema: type[Hyperparameters], values: dict, prefix: str = "algo.")
         value, allowed = values[f.name], f.metadata["allowed"]
         if not allowed.ok(value):
             return f"{prefix}{f.name}={value!r} is not allowed: must be {allowed.text}"
+    for key, (bound, why) in schema.AT_MOST.items():
+        if key in values and bound in values and values[key] > values[bound]:
+            return (
+                f"{prefix}{key}={values[key]!r} is not allowed: must be at most "
+                f"{prefix}{bound} ({values[bound]}){why}"
+            )
     return None

@@ -43,6 +43,8 @@ LR_OR_SHARED = or_null(POSITIVE, "lr")
 class OffPolicy(Hyperparameters):
     """What the replay-based actor-critics (TD3, DDPG, SAC) share."""
 
+    AT_MOST = {"batch_size": ("buffer_size", "")}
+
     lr: float = hp(3.0e-4, POSITIVE, "Adam learning rate, actor and critics")
     batch_size: int = hp(256, POSITIVE_INT, "transitions per gradient step")
     learning_starts: int = hp(
@@ -161,6 +163,7 @@ class PPOHyperparameters(Hyperparameters):
 
     AGENT = "walkers.agents.ppo.PPO"
     NAME = "ppo"
+    AT_MOST = {"n_minibatches": ("n_steps", ": a minibatch holds at least one step")}
     lr: float = hp(3.0e-4, POSITIVE, "Adam learning rate (policy and value share one optimizer)")
     anneal_lr: bool = hp(
         True, BOOL, "anneal the learning rate linearly to 0 over the run's total_steps"

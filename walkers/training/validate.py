@@ -144,21 +144,6 @@ def validate(cfg: DictConfig) -> None:
     _check_implementation(cfg)
     _check_dataset(cfg)
     _check_population(cfg)
-    algo = cfg.algo
-    if "batch_size" in algo and "buffer_size" in algo:
-        check(
-            "algo.batch_size",
-            algo.batch_size,
-            algo.batch_size <= algo.buffer_size,
-            f"at most algo.buffer_size ({algo.buffer_size})",
-        )
-    if "n_minibatches" in algo and "n_steps" in algo:
-        check(
-            "algo.n_minibatches",
-            algo.n_minibatches,
-            algo.n_minibatches <= algo.n_steps,
-            f"at most algo.n_steps ({algo.n_steps}): a minibatch holds at least one step",
-        )
     if cfg.device == "cuda":
         import torch
 

@@ -122,3 +122,18 @@ def test_a_hyperparameter_bounded_by_another_is_checked_against_it(name, key, bo
         validate(cfg)
     cfg.algo[bound] = 64
     validate(cfg)  # equal is allowed
+
+
+@pytest.mark.parametrize("override", ["+algo.actor_lr=0", "+algo.noise_type=pink"])
+def test_a_key_the_algorithm_does_not_declare_is_refused(override):
+    """TD3's constructor would take these (the core's and DDPG's knobs); TD3 declares neither."""
+    key = override[1:].split("=")[0]
+    cfg = compose_cfg(["algo=td3", "env=pendulum", override])
+    with pytest.raises(ConfigError, match=rf"^{key}=.* td3 has no hyperparameter .*\(it has lr, "):
+        validate(cfg)
+
+
+def test_the_checks_follow_the_class_built_not_the_name():
+    cfg = compose_cfg(["algo=td3", "env=pendulum", "algo.name=my_td3", "algo.tau=2"])
+    with pytest.raises(ConfigError, match=r"algo.tau=2 is not allowed"):
+        validate(cfg)

@@ -106,9 +106,20 @@ def defaults(schema: type[Hyperparameters], **overrides) -> dict:
     return values | overrides
 
 
+#: Keys of an algorithm's config that are not hyperparameters: what to build, and its name.
+NOT_HYPERPARAMETERS = ("_target_", "name")
+
+
 def problems(schema: type[Hyperparameters], values: dict, prefix: str = "algo.") -> str | None:
-    """The first declared hyperparameter in ``values`` whose value is not allowed, as a
-    one-line message; None when all are."""
+    """The first key of ``values`` that is not a declared hyperparameter, or whose value is not
+    allowed, as a one-line message; None when all are."""
+    names = [f.name for f in declared(schema)]
+    for key in values:
+        if key not in names and key not in NOT_HYPERPARAMETERS:
+            return (
+                f"{prefix}{key}={values[key]!r} is not allowed: {schema.NAME} has no "
+                f"hyperparameter {key!r} (it has {', '.join(names)})"
+            )
     for f in declared(schema):
         if f.name not in values:
             continue

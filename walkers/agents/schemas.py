@@ -138,6 +138,11 @@ class SACHyperparameters(OffPolicy):
     AGENT = "walkers.agents.sac.SAC"
     NAME = "sac"
     lr: float = hp(3.0e-4, POSITIVE, "Adam learning rate: actor, critics and temperature")
+    tau: float = hp(
+        0.005,
+        DISCOUNT,
+        "target critics: theta' <- tau * theta + (1 - tau) * theta' (every gradient step)",
+    )
     alpha_init: float = hp(
         1.0,
         POSITIVE,
@@ -340,9 +345,13 @@ SCHEMAS: dict[str, type[Hyperparameters]] = {
 }
 
 
+def schema_of(target: str) -> type[Hyperparameters] | None:
+    """The declaration of the agent class ``target`` (an ``algo._target_``); None for a class
+    walkers does not declare."""
+    return next((schema for schema in SCHEMAS.values() if schema.AGENT == target), None)
+
+
 def defaults_for(agent_class: type, **overrides) -> dict:
     """``agent_class``'s hyperparameters as constructor arguments: their declared defaults, with
     ``overrides`` (for code that builds an agent without a config: tests, benchmarks)."""
-    path = f"{agent_class.__module__}.{agent_class.__qualname__}"
-    (schema,) = [schema for schema in SCHEMAS.values() if schema.AGENT == path]
-    return defaults(schema, **overrides)
+    return defaults(schema_of(f"{agent_class.__module__}.{agent_class.__qualname__}"), **overrides)

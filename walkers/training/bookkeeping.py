@@ -30,10 +30,9 @@ from walkers.seeding import (
     torch_rng_state,
     training_env_seed,
 )
-from walkers.tracking.names import ENV_STEPS, GRADIENT_STEPS
 from walkers.training.evaluation import Evaluation, greedy_evaluation
 from walkers.training.rollout import record_episodes
-from walkers.training.run import TrainingRun
+from walkers.training.run import ENV_STEP_AXIS, Axis, TrainingRun
 from walkers.training.video import write_gif
 
 log = logging.getLogger("walkers")
@@ -44,19 +43,6 @@ TRAINING_GIF_FRAMES = 500
 
 class TrainingDiverged(RuntimeError):
     """Every update for ``divergence_patience`` updates in a row had a NaN/inf loss."""
-
-
-@dataclass(frozen=True)
-class Axis:
-    """What the ``step`` of a run's metrics counts, its throughput metric and progress unit."""
-
-    name: str
-    rate_metric: str
-    unit: str
-
-
-ENV_STEP_AXIS = Axis(ENV_STEPS, "perf/sps", "step")  # online: env steps
-GRADIENT_STEP_AXIS = Axis(GRADIENT_STEPS, "perf/gradient_steps_per_s", "grad step")  # offline
 
 
 @dataclass

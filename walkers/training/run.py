@@ -1,10 +1,11 @@
 """A training run from opening to its final status: its MLflow run and its local folder.
 
 :class:`TrainingRun` is the one object the training command, the loops' book and resume talk to
-about a run, and the only one of them that talks to :mod:`walkers.tracking` for it: it opens the
-run (new, or the resumed one reopened), continues an earlier attempt of a job run again, finds
-its last checkpoint, logs and uploads, and :func:`ending` gives it its final status on every way
-out. :class:`RunFolder` is the one place the local layout is spelled::
+about a run; what a training run says to MLflow goes through it (the session only connects the
+client; ``make lint`` keeps the book and the loops from importing :mod:`walkers.tracking`). It
+opens the run (new, or the resumed one reopened), continues an earlier attempt of a job run
+again, finds its last checkpoint, logs and uploads, and :func:`ending` gives it its final status
+on every way out. :class:`RunFolder` is the one place the local layout is spelled::
 
     <work_dir>/runs/<run id>/
         config.yaml                  the resolved config (secrets redacted), also logged
@@ -41,6 +42,20 @@ from walkers.training.provenance import (
 )
 
 log = logging.getLogger("walkers")
+
+
+@dataclass(frozen=True)
+class Axis:
+    """What the ``step`` of a run's metrics counts, its throughput metric and progress unit."""
+
+    name: str
+    rate_metric: str
+    unit: str
+
+
+#: online runs count env steps; offline runs gradient steps
+ENV_STEP_AXIS = Axis(tracking.ENV_STEPS, "perf/sps", "step")
+GRADIENT_STEP_AXIS = Axis(tracking.GRADIENT_STEPS, "perf/gradient_steps_per_s", "grad step")
 
 
 @dataclass(frozen=True)
@@ -84,20 +99,23 @@ class TrainingRun:
     # --- opening ------------------------------------------------------------------------------
     @classmethod
     def open(
-        cls, client, cfg: DictConfig, x_axis: str, data=None, extra_tags: dict | None = None
+        cls, client, cfg: DictConfig, axis: Axis, data=None, extra_tags: dict | None = None
     ) -> TrainingRun:
         """The resumed run (``cfg.resume``) reopened, or a new one with the config as params and
         tags; either way with its ``config.yaml`` written and logged.
 
-        ``x_axis``: what the run's steps count; ``data``: an offline run's dataset;
-        ``extra_tags`` are set either way (a population member: its place in the population).
+        ``axis``: what the run's steps count; ``data``: an offline run's dataset; ``extra_tags``
+        are set either way (a population member: its place in the population). If opening
+        fails, the run ends at once: a new run FAILED; a resumed run KILLED, as it was stopped
+        before it could go on, so that it can still be continued (a job run again after a store
+        hiccup continues it).
         """
         tags = (extra_tags or {}) | trial_tags(cfg)
         if cfg.resume:
             tracker = tracking.Tracker.reopen(client, cfg.resume, ".", resumed_training=True)
             tags |= {WORKER_TAG: worker_name()}
         else:
-            tags = new_run_tags(cfg, x_axis, data) | tags
+            tags = new_run_tags(cfg, axis.name, data) | tags
             tracker = tracking.Tracker.start(
                 client, cfg.tracking.experiment, run_name(cfg), tags=tags, spool_dir="."
             )
@@ -111,7 +129,7 @@ class TrainingRun:
                     tracker.log_params(dataset_params(data))
             run._write_config(cfg)
         except BaseException:
-            tracker.end(tracking.FAILED)
+            tracker.end(tracking.KILLED if cfg.resume else tracking.FAILED)
             raise
         if cfg.tracking.get("system_metrics"):
             tracker.start_system_metrics(cfg.tracking.system_metrics_every)

@@ -21,17 +21,12 @@ from walkers.agents.factory import build_agent
 from walkers.agents.sb3_twin import SB3Twin
 from walkers.errors import ConfigError
 from walkers.training import resume
-from walkers.training.bookkeeping import (
-    ENV_STEP_AXIS,
-    GRADIENT_STEP_AXIS,
-    RunBook,
-    RunSettings,
-)
+from walkers.training.bookkeeping import RunBook, RunSettings
 from walkers.training.envs import env_spaces, make_env
 from walkers.training.evaluation import per_target_return, with_normalized_score
 from walkers.training.loops import train_offline, train_online, train_population, train_sb3
 from walkers.training.provenance import MEMBER_TAG, POPULATION_TAG, shareable
-from walkers.training.run import TrainingRun, ending
+from walkers.training.run import ENV_STEP_AXIS, GRADIENT_STEP_AXIS, TrainingRun, ending
 from walkers.training.validate import is_offline, validate
 from walkers.tuning.trial import TrialReporter
 
@@ -82,7 +77,7 @@ def _train_single(cfg: DictConfig, client, state: dict | None) -> dict[str, floa
         if isinstance(agent, SB3Twin):
             agent.attach(env, cfg.total_steps)  # SB3's model is built on its training env
         axis = GRADIENT_STEP_AXIS if data is not None else ENV_STEP_AXIS
-        runs = [TrainingRun.open(client, cfg, axis.name, data)]
+        runs = [TrainingRun.open(client, cfg, axis, data)]
         # From here on the run exists in MLflow: every way out sets its final status.
         with ending(runs):
             offline = (
@@ -135,7 +130,7 @@ def _train_population(
         with ending(runs, population=True):
             for i, member in enumerate(members):
                 tags = {POPULATION_TAG: str(k), MEMBER_TAG: str(i)}
-                runs.append(TrainingRun.open(client, member, ENV_STEP_AXIS.name, extra_tags=tags))
+                runs.append(TrainingRun.open(client, member, ENV_STEP_AXIS, extra_tags=tags))
             books = [
                 _book(member, run, agent.member_policy(i), envs[i], eval_envs[i])
                 for i, (member, run) in enumerate(zip(members, runs, strict=True))

@@ -20,7 +20,7 @@ from walkers.agents.hyperparameters import (
 )
 from walkers.agents.sb3_arguments import NotExpressible, sb3_arguments
 from walkers.agents.sb3_twin import import_sb3
-from walkers.agents.schemas import SCHEMAS
+from walkers.agents.schemas import schema_of
 from walkers.errors import ConfigError
 from walkers.metrics import METRIC_DIRECTIONS
 
@@ -132,7 +132,7 @@ def validate(cfg: DictConfig) -> None:
         if OmegaConf.is_config(value):
             value = OmegaConf.to_container(value, resolve=True)
         check(key, value, allowed.ok(value), allowed.text)
-    schema = SCHEMAS.get(cfg.algo.get("name"))
+    schema = schema_of(cfg.algo.get("_target_"))  # what will be built, whatever its name
     if schema is not None and (problem := problems(schema, _algo_values(cfg))):
         raise ConfigError(problem)
     check(

@@ -32,10 +32,10 @@ from rounds import alternate, print_table
 
 from walkers.agents.base import Transition
 from walkers.agents.ddpg import DDPG
+from walkers.agents.factory import defaults_for
 from walkers.agents.ppo import PPO
 from walkers.agents.reinforce import Reinforce
 from walkers.agents.sac import SAC
-from walkers.agents.schemas import defaults_for
 from walkers.agents.td3 import TD3
 from walkers.data.replay import DATA_FIELDS, ReplayBuffer
 from walkers.training.envs import env_spaces

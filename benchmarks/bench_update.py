@@ -24,7 +24,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from walkers.agents.base import Transition
-from walkers.agents.schemas import defaults_for
+from walkers.agents.factory import defaults_for
 from walkers.agents.td3 import TD3
 
 OBS, ACT, BATCH, CAPACITY = 17, 6, 256, 100_000

@@ -9,8 +9,8 @@ import torch
 from tests.conftest import DESIGN_METRICS, TINY, all_runs, compose_cfg
 from walkers.agents.base import Transition
 from walkers.agents.ddpg import DDPG
+from walkers.agents.factory import defaults_for
 from walkers.agents.reinforce import Reinforce, returns_to_go
-from walkers.agents.schemas import defaults_for
 from walkers.train import train
 from walkers.training.envs import make_env
 

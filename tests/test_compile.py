@@ -8,7 +8,7 @@ import torch
 
 from tests.conftest import TINY, all_runs, compose_cfg
 from walkers.agents.base import Transition
-from walkers.agents.schemas import defaults_for
+from walkers.agents.factory import defaults_for
 from walkers.agents.td3 import TD3
 from walkers.train import train
 

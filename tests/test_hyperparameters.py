@@ -16,8 +16,9 @@ from hydra.utils import get_class
 from tests.conftest import compose_cfg
 from walkers import PROJECT_ROOT
 from walkers.agents.ddpg import DDPG
+from walkers.agents.factory import defaults_for
 from walkers.agents.menus import menu, write_menus
-from walkers.agents.schemas import SCHEMAS, defaults_for
+from walkers.agents.schemas import SCHEMAS
 from walkers.agents.td3 import TD3
 from walkers.errors import ConfigError
 from walkers.training.validate import validate

@@ -10,7 +10,7 @@ import torch
 
 from tests.conftest import TINY, all_runs, compose_cfg, run_cli, signal_once_checkpointed
 from walkers.agents.base import Transition
-from walkers.agents.schemas import defaults_for
+from walkers.agents.factory import defaults_for
 from walkers.agents.td3 import TD3
 from walkers.errors import ConfigError
 from walkers.train import train

@@ -13,8 +13,8 @@ from torch import nn
 
 from tests.conftest import TINY, all_runs, compose_cfg, new_store, run_cli
 from walkers.agents.base import Transition
+from walkers.agents.factory import defaults_for
 from walkers.agents.ppo import PPO, ROLLOUT_RESTART_TAG, clipped_surrogate, value_loss
-from walkers.agents.schemas import defaults_for
 from walkers.data.rollouts import Rollout, gae
 from walkers.errors import ConfigError
 from walkers.train import train

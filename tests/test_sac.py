@@ -13,9 +13,9 @@ from torch.distributions import Normal, TanhTransform, TransformedDistribution
 
 from tests.conftest import DESIGN_METRICS, TINY, all_runs, compose_cfg, new_store, run_cli
 from walkers.agents.base import Transition
+from walkers.agents.factory import defaults_for
 from walkers.agents.networks import EnsembleGaussianActor, tanh_log_det_jacobian
 from walkers.agents.sac import SAC
-from walkers.agents.schemas import defaults_for
 from walkers.train import train
 from walkers.training import checkpoints
 from walkers.training.checkpoints import agent_from_checkpoint

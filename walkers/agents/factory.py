@@ -8,8 +8,10 @@ from hydra.errors import InstantiationException
 from omegaconf import DictConfig, OmegaConf
 
 from walkers.agents.base import Agent, resolve_device
+from walkers.agents.hyperparameters import defaults
 from walkers.agents.sb3_arguments import NotExpressible
 from walkers.agents.sb3_twin import SB3Twin
+from walkers.agents.schemas import schema_of
 from walkers.errors import ConfigError
 
 #: Config-selected classes ``instantiate`` may build: agents only.
@@ -46,3 +48,9 @@ def build_agent(cfg: DictConfig, spaces: dict, **data) -> Agent:
         if isinstance(cause, ValueError | TypeError):  # a bad or unknown hyperparameter
             raise ConfigError(f"algo.{cause}" if "=" in str(cause) else f"algo: {cause}") from None
         raise
+
+
+def defaults_for(agent_class: type, **overrides) -> dict:
+    """``agent_class``'s hyperparameters as constructor arguments: their declared defaults, with
+    ``overrides`` (for code that builds an agent without a config: tests, benchmarks)."""
+    return defaults(schema_of(f"{agent_class.__module__}.{agent_class.__qualname__}"), **overrides)

@@ -8,7 +8,8 @@ made by :func:`hp`. Everything else is derived from that one declaration:
 - the check of a composed config (:func:`problems`, called by ``walkers.training.validate``):
   a one-line error naming the key, the bad value and what is allowed;
 - the agent's constructor arguments, which have no defaults of their own
-  (:func:`defaults` gives them to code that builds an agent without a config, e.g. tests).
+  (:func:`walkers.agents.factory.defaults_for` gives them to code that builds an agent without
+  a config, e.g. tests and benchmarks).
 
 Hydra's ConfigStore could hold these dataclasses as the yaml files' schema, but it would reject
 a mistyped value while composing, with a multi-line merge error, before walkers sees the config;

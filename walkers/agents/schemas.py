@@ -21,7 +21,6 @@ from walkers.agents.hyperparameters import (
     POSITIVE_INT,
     PROBABILITY,
     Hyperparameters,
-    defaults,
     hp,
     one_of,
     or_null,
@@ -349,9 +348,3 @@ def schema_of(target: str) -> type[Hyperparameters] | None:
     """The declaration of the agent class ``target`` (an ``algo._target_``); None for a class
     walkers does not declare."""
     return next((schema for schema in SCHEMAS.values() if schema.AGENT == target), None)
-
-
-def defaults_for(agent_class: type, **overrides) -> dict:
-    """``agent_class``'s hyperparameters as constructor arguments: their declared defaults, with
-    ``overrides`` (for code that builds an agent without a config: tests, benchmarks)."""
-    return defaults(schema_of(f"{agent_class.__module__}.{agent_class.__qualname__}"), **overrides)

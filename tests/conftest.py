@@ -140,7 +140,9 @@ def signal_once_checkpointed(
     try:
         wait_for_uploaded_checkpoint(proc, store_path, checkpoint)  # it is training
         proc.send_signal(sig)
-        stdout, stderr = proc.communicate(timeout=60)
+        # ending takes a last checkpoint and the run's status; on a loaded machine a sqlite store
+        # can stay locked for a while (the run retries, up to its store patience)
+        stdout, stderr = proc.communicate(timeout=180)
     finally:
         proc.kill()
     return proc.returncode, stdout, stderr

@@ -100,7 +100,8 @@ def declared(schema: type[Hyperparameters]) -> list[dataclasses.Field]:
 
 def defaults(schema: type[Hyperparameters], **overrides) -> dict:
     """The hyperparameters as constructor arguments: the defaults, with ``overrides``."""
-    values = {f.name: getattr(schema(), f.name) for f in declared(schema)}
+    declared_defaults = schema()
+    values = {f.name: getattr(declared_defaults, f.name) for f in declared(schema)}
     unknown = set(overrides) - set(values)
     if unknown:
         raise TypeError(f"{schema.NAME} has no hyperparameter {sorted(unknown)[0]!r}")

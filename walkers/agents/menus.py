@@ -52,8 +52,9 @@ def menu(schema: type[Hyperparameters]) -> str:
     lines = ["# @package _global_"] if nested else []
     lines += [*header, *(["algo:"] if nested else [])]
     lines += [f"{indent}_target_: {schema.AGENT}", f"{indent}name: {schema.NAME}"]
+    defaults = schema()
     for f in fields(schema):
-        default = getattr(schema(), f.name)
+        default = getattr(defaults, f.name)
         if f.metadata["follows"]:
             value = "${" + f.metadata["follows"] + "}"
         elif f.metadata["env_key"]:
@@ -84,7 +85,7 @@ def write_menus(conf_dir=None, check: bool = False) -> list[str]:
 
 if __name__ == "__main__":  # make menus
     checking = "--check" in sys.argv[1:]
-    for path in write_menus(check=checking):
+    stale = write_menus(check=checking)
+    for path in stale:
         print(f"{'out of step with walkers/agents/schemas.py' if checking else 'wrote'}: {path}")
-        if checking:
-            sys.exit(1)
+    sys.exit(1 if checking and stale else 0)

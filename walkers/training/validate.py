@@ -91,9 +91,8 @@ def _check_implementation(cfg: DictConfig) -> None:
     """``impl=sb3``: an algorithm with an SB3 twin, settings SB3 can express, SB3 installed."""
     if cfg.get("impl", "walkers") != "sb3":
         return
-    hyperparameters = OmegaConf.to_container(cfg.algo, resolve=True)
     try:
-        sb3_arguments(cfg.algo.name, hyperparameters)
+        sb3_arguments(cfg.algo.name, _algo_values(cfg))
     except NotExpressible as e:
         raise ConfigError(str(e)) from None
     if cfg.population > 1:

@@ -71,7 +71,8 @@ def _single_values(args: list[str]) -> list[list[str]]:
     return combos
 
 
-def _one_line(error: Exception, overrides: list[str]) -> str:
+def one_line_hydra_error(error: Exception, overrides: list[str]) -> str:
+    """A Hydra composition error as one line naming the bad override and what is allowed."""
     if isinstance(error, MissingConfigException) and error.missing_cfg_file:
         group, _, name = error.missing_cfg_file.rpartition("/")
         options = ", ".join(error.options or [])
@@ -126,7 +127,7 @@ def exit_on_bad_overrides(config_name: str, args: list[str] | None = None) -> No
             for overrides in combos:
                 compose(config_name=config_name, overrides=overrides)
     except (MissingConfigException, ConfigCompositionException, OverrideParseException) as e:
-        print(f"error: {_one_line(e, args)}", file=sys.stderr)
+        print(f"error: {one_line_hydra_error(e, args)}", file=sys.stderr)
         sys.exit(2)
 
 

@@ -59,6 +59,13 @@ def _raise_keyboard_interrupt(signum, frame):
 def main(cfg: DictConfig) -> float:
     signal.signal(signal.SIGTERM, _raise_keyboard_interrupt)  # SIGTERM ends the run like Ctrl-C
     hydra_cfg = HydraConfig.get()
+    study = hydra_cfg.runtime.choices.get("ab")
+    if hydra_cfg.mode == RunMode.RUN and study not in (None, "null"):
+        fail(
+            f"error: ab={study} is an A/B study: run it with -m (python -m walkers.train -m "
+            f"ab={study})",
+            2,
+        )
     if hydra_cfg.mode == RunMode.MULTIRUN and not cfg.job_key:
         # the same for every attempt of this job (a cluster runs a job again if its worker dies)
         cfg.job_key = f"{hydra_cfg.sweep.dir}#{hydra_cfg.job.num}"

@@ -33,10 +33,18 @@ QUICK_HTTP_RETRIES = {
 }
 
 
+#: What MLflow's UI reads an experiment's kind from: walkers' experiments are model training,
+#: not GenAI applications (the tag alone did not switch the view in 3.17; the links below do).
+EXPERIMENT_KIND_TAG, MODEL_TRAINING_KIND = "mlflow.experimentKind", "custom_model_development"
+#: The query that opens MLflow's UI on its model-training view (checked in headless Chromium).
+TRAINING_VIEW = "?workflowType=machine_learning"
+
+
 def ui_url(experiment_id: str, run_id: str | None = None, host: str = "http://127.0.0.1:5000"):
-    """Direct link to the training-runs table (the UI opens a GenAI overview otherwise)."""
+    """Direct link to the training-runs table, or a run's page, in the model-training view
+    (MLflow 3.17 opens an experiment as a GenAI application unless the URL asks for it)."""
     url = f"{host}/#/experiments/{experiment_id}/runs"
-    return f"{url}/{run_id}" if run_id else url
+    return f"{url}/{run_id}{TRAINING_VIEW}" if run_id else f"{url}{TRAINING_VIEW}"
 
 
 def _artifact_location(uri: str) -> str | None:
@@ -68,6 +76,7 @@ def get_or_create_experiment(client: MlflowClient, name: str) -> str:
             client.create_experiment,
             name,
             artifact_location=_artifact_location(client.tracking_uri),
+            tags={EXPERIMENT_KIND_TAG: MODEL_TRAINING_KIND},
         )
     except MlflowException:
         experiment = client.get_experiment_by_name(name)

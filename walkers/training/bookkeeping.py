@@ -31,6 +31,7 @@ from walkers.seeding import (
     training_env_seed,
 )
 from walkers.training.evaluation import Evaluation, greedy_evaluation
+from walkers.training.provenance import DIVERGED_TAG
 from walkers.training.rollout import record_episodes
 from walkers.training.run import ENV_STEP_AXIS, Axis, TrainingRun
 from walkers.training.video import write_gif
@@ -219,6 +220,7 @@ class RunBook:
                 if self.last_checkpoint_step is not None
                 else "no checkpoint had been written yet"
             )
+            self.run.set_tags({DIVERGED_TAG: str(self.progress.step)})
             raise TrainingDiverged(
                 f"training diverged at step {self.progress.step}: the last {int(in_a_row)} "
                 f"updates all had a NaN/inf loss or gradient ({losses}) and were skipped; {kept}"

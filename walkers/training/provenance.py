@@ -20,6 +20,8 @@ POPULATION_TAG = "walkers.population"
 MEMBER_TAG = "walkers.population_member"
 #: Tag of an earlier attempt's run that a job run again could not continue (it is FAILED).
 SUPERSEDED_TAG = "walkers.superseded"
+#: Tag of a run that ended FAILED because its updates diverged (the step): a rerun would too.
+DIVERGED_TAG = "walkers.diverged_at_step"
 
 
 def new_run_tags(cfg: DictConfig, x_axis: str, data=None) -> dict[str, str]:
@@ -57,10 +59,10 @@ def trial_tags(cfg: DictConfig) -> dict[str, str]:
     """A sweep job's place in its study: the study, the trial, the MLflow run it nests under
     (set again on resume: a retried trial of a study continues the run of the trial it
     retries)."""
-    if cfg.trial.number is None:
-        return {}
-    tags = {"walkers.study": cfg.trial.study, "walkers.trial": str(cfg.trial.number)}
-    if cfg.trial.parent_run_id:
+    tags = {}
+    if cfg.trial.number is not None:
+        tags = {"walkers.study": cfg.trial.study, "walkers.trial": str(cfg.trial.number)}
+    if cfg.trial.parent_run_id:  # an Optuna study's trial, or an A/B study's job
         tags["mlflow.parentRunId"] = cfg.trial.parent_run_id
     return tags
 

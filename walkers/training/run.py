@@ -30,6 +30,7 @@ from walkers import tracking
 from walkers.errors import CheckpointError
 from walkers.training import checkpoints
 from walkers.training.provenance import (
+    DIVERGED_TAG,
     MEMBER_TAG,
     SUPERSEDED_TAG,
     WORKER_TAG,
@@ -148,6 +149,25 @@ class TrainingRun:
         return cls(tracking.Tracker.attach(client, run_id, "."), RunFolder.of(work_dir, run_id))
 
     @staticmethod
+    def _attempts(client, cfg: DictConfig) -> list:
+        """The runs earlier attempts of this job (``job_key``) left, any status."""
+        if not cfg.job_key:
+            return []
+        experiment = client.get_experiment_by_name(cfg.tracking.experiment)
+        if experiment is None:
+            return []
+        query = tracking.tags_equal({tracking.JOB_KEY_TAG: cfg.job_key})
+        return tracking.search_runs(client, experiment.experiment_id, query)
+
+    @staticmethod
+    def finished_attempt(client, cfg: DictConfig):
+        """The FINISHED run of this job (single runs only), if an earlier attempt finished it."""
+        if cfg.population > 1:
+            return None
+        done = [r for r in TrainingRun._attempts(client, cfg) if r.info.status == tracking.FINISHED]
+        return done[0] if done else None
+
+    @staticmethod
     def continue_earlier_attempt(client, cfg: DictConfig) -> DictConfig:
         """A job run again continues the run(s) of its earlier attempt instead of starting more.
 
@@ -155,20 +175,17 @@ class TrainingRun:
         runs a trial again when its sweeper died (``optuna.max_retry``). The earlier attempt's
         run, left RUNNING (or KILLED by SIGTERM), is found by the job's key (``job_key``) and
         resumed from its last checkpoint, fetched from MLflow on whatever worker this is; a
-        population's K member runs are resumed together (``resume=[...]``). Without checkpoints
-        to continue from (none yet, or a population's members cut at different steps) the
-        earlier runs are marked FAILED and new ones start.
+        population's K member runs are resumed together (``resume=[...]``). A run that ended
+        FAILED (an error, not a divergence) is continued the same way, as a rerun of an A/B
+        study asks. Without checkpoints to continue from (none yet, or a population's members
+        cut at different steps) the earlier runs are marked FAILED (tagged superseded) and new
+        ones start.
         """
-        if not cfg.job_key:
-            return cfg
-        experiment = client.get_experiment_by_name(cfg.tracking.experiment)
-        if experiment is None:
-            return cfg
-        query = tracking.tags_equal({tracking.JOB_KEY_TAG: cfg.job_key})
         earlier = [
             r
-            for r in tracking.search_runs(client, experiment.experiment_id, query)
+            for r in TrainingRun._attempts(client, cfg)
             if r.info.status in ("RUNNING", "KILLED")
+            or (r.info.status == "FAILED" and not _gave_up_on(r))
         ]
         if not earlier:
             return cfg
@@ -299,6 +316,11 @@ def _last_checkpoint(client, run_id: str, work_dir) -> dict:
             uploaded["trainer"]["step"],
         )
     return uploaded
+
+
+def _gave_up_on(run) -> bool:
+    """A FAILED run not to continue: superseded by a new attempt, or ended by divergence."""
+    return SUPERSEDED_TAG in run.data.tags or DIVERGED_TAG in run.data.tags
 
 
 def _why_not_continued(client, cfg: DictConfig, runs: list) -> str | None:

@@ -1,0 +1,139 @@
+"""A study's MLflow run and what its jobs left in MLflow.
+
+The study's run (tag ``walkers.kind=ab``, ``walkers.ab=<name>``) is created by the first command
+and reopened by every rerun; its params are the design (refused if a rerun's differs), its jobs'
+runs nest under it, and each round logs the interim answers: metrics ``ab/questions_open`` and
+``ab/seeds_run`` per look, tags ``answer.<question>``, the artifact ``rounds/look_<k>.md``.
+A job's run is found by its job key (``ab/<study>/<arm>/<env>/<seed>``); only FINISHED runs
+count, one per key.
+"""
+
+from __future__ import annotations
+
+import logging
+import tempfile
+from collections.abc import Mapping
+from pathlib import Path
+
+from walkers import tracking
+from walkers.ab.rounds import Scores, Standing
+from walkers.ab.spec import StudySpec
+from walkers.analysis.arms import arm_config, run_params
+from walkers.errors import ConfigError
+
+log = logging.getLogger("walkers")
+
+STUDY_KIND = "ab"
+STUDY_TAG = "walkers.ab"
+
+
+def open_study_run(client, experiment: str, spec: StudySpec, spool_dir) -> tracking.Tracker:
+    """The study's run, reopened (its design checked) or started."""
+    experiment_id = tracking.get_or_create_experiment(client, experiment)
+    query = tracking.tags_equal({tracking.KIND_TAG: STUDY_KIND, STUDY_TAG: spec.name})
+    earlier = tracking.search_runs(client, experiment_id, query)
+    design = spec.design_params()
+    if earlier:
+        stored = earlier[0].data.params
+        for key, value in design.items():
+            if key in stored and stored[key] != value:
+                raise ConfigError(
+                    f"study {spec.name!r} in experiment {experiment!r} was started with "
+                    f"{key}={stored[key]!r}, not {value!r}: a study's test is fixed when it "
+                    "starts; restore the study file or give the new design a new name"
+                )
+        tracker = tracking.Tracker.reopen(client, earlier[0].info.run_id, spool_dir)
+        log.info("study %r: continuing its MLflow run %s", spec.name, tracker.run_id)
+        return tracker
+    tags = {tracking.KIND_TAG: STUDY_KIND, STUDY_TAG: spec.name}
+    tracker = tracking.Tracker.start(client, experiment, f"ab-{spec.name}", tags, spool_dir)
+    try:
+        tracker.log_params(design)
+    except BaseException:
+        tracker.end(tracking.FAILED)
+        raise
+    return tracker
+
+
+def job_runs(client, experiment: str, spec: StudySpec) -> list:
+    """Every run of the study's jobs (any status)."""
+    experiment_obj = client.get_experiment_by_name(experiment)
+    if experiment_obj is None:
+        return []
+    key = tracking.quoted(f"{spec.job_key_prefix}%")
+    query = f"tags.`{tracking.JOB_KEY_TAG}` LIKE {key}"
+    return tracking.search_runs(client, experiment_obj.experiment_id, query)
+
+
+def finished_scores(runs: list, spec: StudySpec) -> Scores:
+    """(arm, env) -> {seed: score} of the FINISHED runs (one per job key: never a seed twice)."""
+    scores: dict[tuple[str, str], dict[int, float]] = {}
+    for run in runs:
+        place = spec.parse_job_key(run.data.tags.get(tracking.JOB_KEY_TAG, ""))
+        if place is None or run.info.status != tracking.FINISHED:
+            continue
+        arm, env, seed = place
+        if spec.score not in run.data.metrics:
+            continue
+        by_seed = scores.setdefault((arm, env), {})
+        if seed in by_seed:
+            log.warning(
+                "job %s has two FINISHED runs: counting one", run.data.tags[tracking.JOB_KEY_TAG]
+            )
+            continue
+        by_seed[seed] = run.data.metrics[spec.score]
+    return scores
+
+
+def check_arms_unchanged(runs: list, spec: StudySpec, configs: Mapping[tuple[str, str], dict]):
+    """Refuse, in one line, an arm whose configuration is not that of its runs so far (the
+    study file edited): a changed arm is a new arm, under a new name."""
+    for run in runs:
+        place = spec.parse_job_key(run.data.tags.get(tracking.JOB_KEY_TAG, ""))
+        if place is None or (place[0], place[1]) not in configs:
+            continue
+        arm, env, _ = place
+        then, now = arm_config(run_params(run)), arm_config(configs[(arm, env)])
+        changed = sorted(k for k in then.keys() | now.keys() if then.get(k) != now.get(k))
+        if changed:
+            key = changed[0]
+            raise ConfigError(
+                f"study {spec.name!r}: arm {arm!r} on {env} has changed since its runs started "
+                f"({key}: {then.get(key, '<unset>')} -> {now.get(key, '<unset>')}"
+                f"{f', and {len(changed) - 1} more' if len(changed) > 1 else ''}): an arm is one "
+                f"configuration; restore it, or declare the new one as an arm of another name"
+            )
+
+
+def log_standing(tracker: tracking.Tracker, standing: Standing, seeds_run: int) -> None:
+    """One round's interim answers on the study's run."""
+    step = max(standing.look, 0)
+    open_ = sum(not q.answer.settled for q in standing.questions)
+    tracker.log_metrics({"ab/questions_open": open_, "ab/seeds_run": seeds_run}, step=step)
+    tracker.set_tags({f"answer.{_tag(q.name)}": q.answer.decision for q in standing.questions})
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / f"look_{step}.md"
+        path.write_text(standing_table(standing))
+        tracker.log_artifact(path, "rounds")
+    tracker.flush()
+
+
+def _tag(name: str) -> str:
+    return name.replace(" ", "_").replace("(", "").replace(")", "")
+
+
+def standing_table(standing: Standing) -> str:
+    """The answers as a markdown table."""
+    rows = [
+        "| question | answer | seeds per arm | mean difference (normalized) | p (superiority) "
+        "| power for the smallest difference |",
+        "|---|---|---|---|---|---|",
+    ]
+    for q in standing.questions:
+        r = q.answer
+        power = "" if r.power != r.power else f"{r.power:.2f}"
+        rows.append(
+            f"| {q.name} | {r.decision} | {r.seeds} | {r.difference:+.1f} | {r.p_value:.4f} "
+            f"| {power} |"
+        )
+    return "\n".join(rows) + "\n"

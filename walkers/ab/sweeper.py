@@ -1,0 +1,220 @@
+"""The Hydra sweeper behind ``python -m walkers.train -m ab=NAME``: an A/B study in rounds.
+
+Every round it reads what the study's jobs left in MLflow, answers each question with the
+sequential test (:mod:`walkers.ab.rounds`), logs the interim answers to the study's run, and
+launches the jobs the open questions need, through whatever launcher the command chose (basic,
+joblib, Ray, submitit). A job is keyed by study, arm, env and seed (``job_key``), so:
+
+- a rerun of the same command skips FINISHED jobs, and each job it launches again continues its
+  earlier run (RUNNING with its process gone, KILLED, or FAILED with a checkpoint) from the last
+  checkpoint (:meth:`walkers.training.run.TrainingRun.continue_earlier_attempt`);
+- no seed runs twice or counts twice: one FINISHED run per key.
+
+Bad input (an unknown arm config or env, a maximum below the minimum, alpha out of range, an arm
+whose config changed since its runs started, a design other than the one the study started with)
+is one ``error:`` line and exit 2 before anything runs.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+from typing import Any
+
+from hydra.core.override_parser.overrides_parser import OverridesParser
+from hydra.core.plugins import Plugins
+from hydra.core.utils import JobStatus
+from hydra.errors import HydraException
+from hydra.plugins.sweeper import Sweeper
+from omegaconf import DictConfig, open_dict
+
+from walkers import tracking
+from walkers.ab import ledger
+from walkers.ab.rounds import standing
+from walkers.ab.spec import StudySpec
+from walkers.analysis.sequential import A_BETTER, B_BETTER, EQUAL
+from walkers.cli import one_line_hydra_error
+from walkers.errors import ConfigError
+from walkers.training.provenance import shareable
+from walkers.training.validate import validate
+from walkers.tuning.study_runs import end_jobs_runs
+
+log = logging.getLogger("walkers")
+
+#: Command-line keys a study sets for each job itself.
+STUDY_KEYS = ("seed", "env", "job_key", "trial.parent_run_id")
+
+
+class ABStudySweeper(Sweeper):
+    def __init__(self, **declared: Any) -> None:
+        self.declared = declared
+
+    def setup(self, *, hydra_context, task_function, config: DictConfig) -> None:
+        self.config, self.hydra_context = config, hydra_context
+        self.launcher = Plugins.instance().instantiate_launcher(
+            config=config, hydra_context=hydra_context, task_function=task_function
+        )
+        self.job_idx = 0
+
+    def sweep(self, arguments: list[str]) -> Any:
+        try:
+            spec = StudySpec.parse(**self.declared)
+            base = self._base_overrides(arguments)
+            configs = {
+                (arm.name, env): self._job_config(base, spec, arm.name, env)
+                for arm in spec.arms
+                for env in spec.envs
+            }
+            client = tracking.connect(self.config.tracking.uri)
+            experiment = self.config.tracking.experiment
+            ledger.check_arms_unchanged(ledger.job_runs(client, experiment, spec), spec, configs)
+            study = ledger.open_study_run(client, experiment, spec, self.config.work_dir)
+        except ConfigError as e:
+            print(f"error: {e}", file=sys.stderr)
+            sys.exit(2)
+        self._say_design(spec)
+        try:
+            with tracking.ending([study]):
+                final = self._rounds(client, experiment, spec, base, study)
+        except KeyboardInterrupt:
+            print(
+                f"interrupted: study {spec.name!r} stopped (its runs KILLED, each continued from "
+                "its last checkpoint by the same command)",
+                file=sys.stderr,
+            )
+            log.info("open it: `make ui`, then %s", study.url)
+            sys.exit(130)
+        print(ledger.standing_table(final))
+        for line in verdicts(final):
+            log.info("%s", line)
+        log.info("study %r: MLflow run %s ended %s", spec.name, study.run_id, study.status)
+        log.info("open it: `make ui`, then %s", study.url)
+        return final
+
+    # --- the rounds ---------------------------------------------------------------------------
+    def _rounds(self, client, experiment: str, spec: StudySpec, base: list[str], study):
+        while True:
+            scores = ledger.finished_scores(ledger.job_runs(client, experiment, spec), spec)
+            now = standing(spec, scores)
+            ledger.log_standing(study, now, sum(len(v) for v in scores.values()))
+            jobs = now.missing(scores)
+            if not jobs:
+                return now
+            log.info(
+                "study %r, look %d: %d of %d questions open; launching %d jobs",
+                spec.name,
+                now.look + 2,
+                sum(not q.answer.settled for q in now.questions),
+                len(now.questions),
+                len(jobs),
+            )
+            self._launch(client, experiment, spec, base, jobs, study.run_id)
+
+    def _launch(self, client, experiment, spec, base, jobs, parent_run_id: str) -> None:
+        keys = [spec.job_key(arm, env, seed) for arm, env, seed in jobs]
+        batch = [
+            base
+            + list(spec.arm(arm).overrides)
+            + [
+                f"env={env}",
+                f"seed={seed}",
+                f"job_key={key}",
+                f"trial.parent_run_id={parent_run_id}",
+                f"tracking.run_name=ab-{spec.name}-{arm}-{env}-s{seed}",
+            ]
+            for (arm, env, seed), key in zip(jobs, keys, strict=True)
+        ]
+        try:
+            returns = self.launcher.launch(batch, initial_job_idx=self.job_idx)
+        except SystemExit as e:  # a job interrupted in this process (basic launcher) exits 130
+            end_jobs_runs(client, experiment, keys, KeyboardInterrupt())
+            if e.code == 130:
+                raise KeyboardInterrupt from e
+            raise
+        except BaseException as e:
+            end_jobs_runs(client, experiment, keys, e)
+            raise
+        self.job_idx += len(returns)
+        failed = [
+            (k, r) for k, r in zip(keys, returns, strict=True) if r.status == JobStatus.FAILED
+        ]
+        if failed:
+            key, ret = failed[0]
+            raise RuntimeError(
+                f"{len(failed)} job(s) of study {spec.name!r} failed, first {key}: "
+                f"{type(ret._return_value).__name__}: {ret._return_value}; fix it and run the "
+                "same command again (finished jobs are kept)"
+            )
+
+    # --- checks before anything runs ----------------------------------------------------------
+    def _base_overrides(self, arguments: list[str]) -> list[str]:
+        """The command line's overrides, which every job gets (sweeps and study keys refused)."""
+        for override in OverridesParser.create().parse_overrides(arguments):
+            key = override.get_key_element()
+            if override.is_sweep_override():
+                raise ConfigError(
+                    f"{override.input_line}: a study runs its own seeds and arms; sweep nothing "
+                    "on its command line (declare arms in the study file)"
+                )
+            if key in STUDY_KEYS:
+                raise ConfigError(
+                    f"{override.input_line}: the study sets {key} for each job (seeds: "
+                    "hydra.sweeper.seeds, envs: hydra.sweeper.envs)"
+                )
+        return list(arguments)
+
+    def _job_config(self, base: list[str], spec: StudySpec, arm: str, env: str) -> dict:
+        """The arm's resolved config on ``env`` (seed 0) as params, checked like a run's."""
+        overrides = base + list(spec.arm(arm).overrides) + [f"env={env}"]
+        try:
+            cfg = self.hydra_context.config_loader.load_sweep_config(self.config, overrides)
+        except HydraException as e:
+            raise ConfigError(f"arm {arm!r}: {one_line_hydra_error(e, overrides)}") from None
+        with open_dict(cfg):
+            del cfg["hydra"]
+        try:
+            validate(cfg)
+        except ConfigError as e:
+            raise ConfigError(f"arm {arm!r} on {env}: {e}") from None
+        return tracking.flatten(shareable(cfg))
+
+    def _say_design(self, spec: StudySpec) -> None:
+        design = spec.design()
+        log.info(
+            "study %r: %d arms x %d envs, %d questions (alpha %.3g, Bonferroni: %.3g each); "
+            "looks at %s seeds per arm; smallest difference %.3g normalized points",
+            spec.name,
+            len(spec.arms),
+            len(spec.envs),
+            design.questions,
+            spec.alpha,
+            design.alpha_per_question,
+            ", ".join(map(str, design.looks)),
+            spec.smallest_difference,
+        )
+        if not design.first_look_can_decide():
+            log.warning(
+                "with %d questions the first look (%d seeds per arm) cannot decide anything, "
+                "whatever the returns: raise hydra.sweeper.seeds.min or ask fewer questions",
+                design.questions,
+                design.looks[0],
+            )
+
+
+def verdicts(final) -> list[str]:
+    """One sentence per question, in plain words."""
+    out = []
+    for q in final.questions:
+        r, where = q.answer, q.env or "the suite (aggregate of normalized scores)"
+        if r.decision == A_BETTER:
+            text = f"{q.a} is better than {q.b} on {where}"
+        elif r.decision == B_BETTER:
+            text = f"{q.b} is better than {q.a} on {where}"
+        elif r.decision == EQUAL:
+            text = f"{q.a} and {q.b} are equal within the smallest difference on {where}"
+        else:
+            text = f"{q.a} vs {q.b} on {where}: not settled at the maximum seeds"
+            if r.power == r.power:
+                text += f" (power reached for the smallest difference: {r.power:.2f})"
+        out.append(f"{text} ({r.seeds} seeds per arm, p = {r.p_value:.4g})")
+    return out

@@ -43,6 +43,9 @@ offline: $(STAMP)  ## offline RL end to end in minutes: TD3 on Pendulum -> Minar
 	$(PY) -m walkers.train experiment=offline_pendulum_dt
 	$(PY) -m walkers.compare env=pendulum algos=[td3,dt] tracking.experiment=offline_pendulum
 
+study: $(STAMP)  ## an A/B study to its verdict in minutes: REINFORCE vs TD3 on Pendulum and InvertedPendulum, seeds in rounds (conf/ab/tiny.yaml); rerun to pick up where it stopped
+	$(PY) -m walkers.train -m ab=tiny hydra/launcher=joblib $(ARGS)
+
 compare: $(STAMP)  ## A/B report from finished runs (ARGS="env=walker2d algos=[reinforce,td3] tracking.experiment=...")
 	$(PY) -m walkers.compare $(ARGS)
 
@@ -71,6 +74,9 @@ bench-learning: $(STAMP)  ## walkers vs its Stable-Baselines3 twins through the 
 	$(PY) -m walkers.train -m algo=$(BENCH_ALGOS) impl=walkers,sb3 env=$(BENCH_ENV) 'seed=range($(BENCH_SEEDS))' total_steps=$(BENCH_STEPS) torch_threads=1 progress=false tracking.experiment=$(BENCH_EXPERIMENT) hydra/launcher=joblib hydra.launcher.n_jobs=2 $(ARGS)
 	$(PY) -m walkers.compare env=$(BENCH_ENV) algos=[$(BENCH_ALGOS)] group_by=impl total_steps=$(BENCH_STEPS) tracking.experiment=$(BENCH_EXPERIMENT)
 
+bench-sequential: $(STAMP)  ## the A/B study's stopping rule by simulation: family-wise error, power and seeds saved against a fixed-n design (ARGS="--studies 1000")
+	$(PY) benchmarks/bench_sequential.py $(ARGS)
+
 bench-scale: $(STAMP)  ## a seed study through joblib vs a loopback Ray cluster of 1 and 2 workers; the study and a sweep with N workers on paper
 	$(PY) benchmarks/bench_scale.py $(ARGS)
 
@@ -82,10 +88,14 @@ lint: $(STAMP)  ## ruff (style, common bugs) and lint-imports (imports point dow
 	$(VENV)/bin/lint-imports
 
 ui: $(STAMP)  ## MLflow UI on the local store: http://127.0.0.1:5000 (MLFLOW_PORT=... to change)
+	@echo "the training runs: http://127.0.0.1:$(MLFLOW_PORT)/#/experiments/<experiment id>/runs?workflowType=machine_learning (every run prints its own link)"
 	$(VENV)/bin/mlflow ui --backend-store-uri sqlite:///mlflow.db --port $(MLFLOW_PORT)
+
+dashboard: $(STAMP)  ## optuna-dashboard on the sweeps' study storage: ./optuna.db, or ARGS=optuna=postgres ($$WALKERS_OPTUNA_STORAGE); http://127.0.0.1:8080
+	$(PY) -m walkers.dashboard $(ARGS)
 
 clean:  ## remove run outputs (mlflow.db, mlartifacts/, outputs/, multirun/, .walkers/, reports/) and caches; keeps .venv and optuna.db
 	rm -rf mlflow.db mlruns mlartifacts outputs multirun .walkers reports .pytest_cache .ruff_cache
 	find . -name __pycache__ -type d -prune -not -path './$(VENV)/*' -exec rm -rf {} +
 
-.PHONY: help install train ab ab-all offline compare plan test test-cluster chaos stack bench bench-throughput bench-learning bench-scale menus lint ui clean
+.PHONY: help install train ab ab-all study offline compare plan dashboard bench-sequential test test-cluster chaos stack bench bench-throughput bench-learning bench-scale menus lint ui clean

@@ -152,7 +152,9 @@ def stores(stack: Stack, experiment: str) -> list[str]:
 class LocalRay:
     """A Ray head and ``nodes - 1`` worker nodes on loopback, one CPU each."""
 
-    def __init__(self, nodes: int = 2, env: dict[str, str] | None = None):
+    def __init__(
+        self, nodes: int = 2, env: dict[str, str] | None = None, unset: tuple[str, ...] = ()
+    ):
         self.nodes, self.marker = nodes, uuid.uuid4().hex
         self.temp_dir = Path(tempfile.mkdtemp(prefix="ray", dir="/tmp"))  # sockets: short paths
         self.port = free_port()
@@ -163,7 +165,8 @@ class LocalRay:
             MARKER: self.marker,
             **(env or {}),
         }
-        self.env.pop("MLFLOW_TRACKING_URI", None)
+        for name in ("MLFLOW_TRACKING_URI", *unset):  # ``unset``: as if never exported there
+            self.env.pop(name, None)
 
     @property
     def address(self) -> str:

@@ -104,9 +104,12 @@ def run_cli(
     )
 
 
-def spawn_cli(args: list[str], cwd: Path, merge_output: bool = False) -> subprocess.Popen:
+def spawn_cli(
+    args: list[str], cwd: Path, merge_output: bool = False, new_session: bool = False
+) -> subprocess.Popen:
     """Start ``python -m walkers.train ARGS`` in the background (to signal or kill it);
-    ``merge_output``: stderr into stdout (one log to read)."""
+    ``merge_output``: stderr into stdout (one log to read); ``new_session``: in a process group
+    of its own (to signal it with its workers)."""
     env = {k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"}
     return subprocess.Popen(
         [sys.executable, "-m", "walkers.train", *args],
@@ -115,6 +118,7 @@ def spawn_cli(args: list[str], cwd: Path, merge_output: bool = False) -> subproc
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT if merge_output else subprocess.PIPE,
         text=True,
+        start_new_session=new_session,
     )
 
 

@@ -85,3 +85,12 @@ def test_good_command_lines_pass_the_composition_check():
 def test_cli_unknown_algorithm(store):
     error = one_line_error(run_cli(["algo=foo", *store["overrides"]], cwd=store["path"]))
     assert "algo='foo'" in error and "reinforce, sac, td3" in error
+
+
+def test_a_variable_the_job_reads_from_its_environment_is_named_when_missing(store):
+    """A Ray node started before the study's variable was exported: one line, nothing created."""
+    args = ["trial.storage=${oc.env:WALKERS_TEST_NOT_EXPORTED}", *TINY, *store["overrides"]]
+    line = one_line_error(run_cli(args, cwd=store["path"]))
+    assert line.startswith("error: WALKERS_TEST_NOT_EXPORTED is not set on ")
+    assert "before `ray start`" in line
+    assert all_runs(store["client"]) == []

@@ -431,3 +431,24 @@ def test_a_sweep_under_a_fault_keeps_every_promise(stack, ray_cluster, tmp_path,
         assert any(r.info.status == "FAILED" for r in runs)
     if fault.startswith("Ctrl-C"):  # the driver's jobs died with it: their runs ended KILLED
         assert any(r.info.status == "KILLED" for r in runs), [r.info.status for r in runs]
+
+
+def test_a_ray_node_without_the_study_variable_is_named_before_anything_runs(stack, tmp_path):
+    """The study's variable exported after `ray start` (or forgotten on a machine): the sweeper
+    asks every node before it launches, and says which one lacks what, in one line."""
+    name = "cluster_no_env"
+    bare = LocalRay(nodes=1, unset=(STORAGE_ENV,)).start()
+    try:
+        result = run_cli(
+            ["-m", "sweeps=pendulum_tiny", *TRIAL, *stores(stack, name), *on_ray(bare),
+             f"hydra.sweeper.study_name={name}", f"hydra.sweep.dir={tmp_path}/sweep"],
+            cwd=tmp_path,
+            timeout=300,
+        )  # fmt: skip
+    finally:
+        bare.stop()
+    line = one_line_error(result)
+    assert f"{STORAGE_ENV} is not set on Ray node " in line and "(node " in line
+    assert "before `ray start`" in line
+    assert name not in [s.study_name for s in optuna.get_all_study_summaries(stack["optuna"])]
+    assert runs_of(stack["client"], name) == []

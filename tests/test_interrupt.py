@@ -2,9 +2,18 @@
 
 from __future__ import annotations
 
+import os
 import signal
+import subprocess
+import time
 
-from tests.conftest import all_runs, run_cli, signal_once_checkpointed
+from tests.conftest import (
+    all_runs,
+    run_cli,
+    signal_once_checkpointed,
+    wait_for_uploaded_checkpoint,
+)
+from walkers import PROJECT_ROOT
 from walkers.training import checkpoints
 
 #: A run far longer than any test waits: it is stopped by a signal after its first evaluation.
@@ -64,3 +73,53 @@ def test_a_terminated_population_resumes_together(store):
     )
     assert resumed.returncode == 0, resumed.stderr[-2000:]
     assert [r.info.status for r in all_runs(store["client"])] == ["FINISHED", "FINISHED"]
+
+
+def test_signals_to_the_whole_group_while_it_ends_leave_it_killed_with_its_checkpoint(store):
+    """`timeout -s TERM 75 make train`, `scancel`, `kill -TERM -<pgid>`: make and python both get
+    the signal, make forwards another, a supervisor insists. Here: SIGTERM to the process group
+    every 50 ms from the first one until the process is gone."""
+    args = [
+        *LONG_RUN,
+        "save_buffer=true",
+        *store["overrides"],
+        f"hydra.run.dir={store['path']}/out",
+    ]
+    proc = subprocess.Popen(
+        ["make", "-s", "-C", str(PROJECT_ROOT), "train", f"ARGS={' '.join(args)}"],
+        cwd=store["path"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+        env={k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"},
+    )
+    try:
+        wait_for_uploaded_checkpoint(proc, store["path"], "best.pt")
+        deadline = time.monotonic() + 180
+        while proc.poll() is None and time.monotonic() < deadline:
+            try:
+                os.killpg(proc.pid, signal.SIGTERM)
+            except ProcessLookupError:
+                break
+            time.sleep(0.05)
+        stdout, stderr = proc.communicate(timeout=30)
+    finally:
+        proc.kill()
+    assert "Traceback" not in stderr, stderr[-3000:]
+    assert stderr.count("already stopping") <= 1, stderr[-3000:]
+    (run,) = all_runs(store["client"])
+    assert run.info.status == "KILLED"
+    last = store["client"].download_artifacts(
+        run.info.run_id, "checkpoints/last.pt", str(store["path"])
+    )
+    step = checkpoints.load(last)["trainer"]["step"]
+    assert f"continue it: python -m walkers.train resume={run.info.run_id}" in stdout + stderr
+
+    resumed = run_cli(
+        [f"resume={run.info.run_id}", f"total_steps={step + 200}", *store["overrides"]],
+        cwd=store["path"],
+    )
+    assert resumed.returncode == 0, resumed.stderr[-2000:]
+    (run,) = all_runs(store["client"])
+    assert run.info.status == "FINISHED"

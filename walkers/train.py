@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import math
 import os
-import signal
 import sys
 
 import hydra
@@ -22,7 +21,7 @@ from hydra.types import RunMode
 from omegaconf import DictConfig
 
 from walkers import CONF_DIR
-from walkers.cli import exit_on_bad_overrides, renamed_overrides
+from walkers.cli import exit_on_bad_overrides, renamed_overrides, stop_cleanly_on_signals
 from walkers.errors import CheckpointError, ConfigError
 from walkers.training.bookkeeping import TrainingDiverged
 from walkers.training.session import train
@@ -51,13 +50,9 @@ def fail(message: str, exit_code: int):
     sys.exit(exit_code)
 
 
-def _raise_keyboard_interrupt(signum, frame):
-    raise KeyboardInterrupt(f"signal {signum}")
-
-
 @hydra.main(config_path=str(CONF_DIR), config_name="train", execution_whitelist=["walkers.*"])
 def main(cfg: DictConfig) -> float:
-    signal.signal(signal.SIGTERM, _raise_keyboard_interrupt)  # SIGTERM ends the run like Ctrl-C
+    stop_cleanly_on_signals()  # in a worker process too: SIGTERM ends the run like Ctrl-C
     hydra_cfg = HydraConfig.get()
     study = hydra_cfg.runtime.choices.get("ab")
     if hydra_cfg.mode == RunMode.RUN and study not in (None, "null"):
@@ -88,8 +83,8 @@ def main(cfg: DictConfig) -> float:
 
 if __name__ == "__main__":
     # SIGTERM ends a multirun's driver like Ctrl-C: its sweeper and Hydra callbacks end what it
-    # started (its trials, its jobs' runs) instead of dying in place
-    signal.signal(signal.SIGTERM, _raise_keyboard_interrupt)
+    # started (its trials, its jobs' runs) instead of dying in place, and a second signal waits
+    stop_cleanly_on_signals()
     sys.argv[1:] = renamed_overrides(sys.argv[1:])
     exit_on_bad_overrides("train")
     main()

@@ -97,3 +97,40 @@ def check_ray_cluster(launcher: DictConfig) -> None:
         file=sys.stderr,
     )
     sys.exit(2)
+
+
+def missing_on_ray_nodes(launcher: DictConfig, names: list[str]) -> list[tuple[str, str]]:
+    """``(node, variable)`` for each variable of ``names`` that a live node of the launcher's Ray
+    cluster lacks in its environment: jobs read them there (a Ray worker has its node's
+    environment as it was at ``ray start``). Ray is initialized with the launcher's own settings,
+    which the launcher then finds in place."""
+    if "hydra_ray_launcher" not in str(launcher.get("_target_", "")) or not names:
+        return []
+    import ray
+    from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
+
+    if not ray.is_initialized():
+        init = OmegaConf.to_container(launcher.ray.init, resolve=True) or {}
+        ray.init(**init)
+
+    @ray.remote(num_cpus=0, max_retries=0)
+    def probe(wanted: list[str]) -> list[str]:
+        import os
+
+        return [name for name in wanted if not os.environ.get(name)]
+
+    nodes = [n for n in ray.nodes() if n.get("Alive")]
+    answers = ray.get(
+        [
+            probe.options(
+                scheduling_strategy=NodeAffinitySchedulingStrategy(n["NodeID"], soft=False)
+            ).remote(names)
+            for n in nodes
+        ],
+        timeout=120,
+    )
+    return [
+        (f"{n.get('NodeManagerAddress')} (node {n['NodeID'][:12]})", name)
+        for n, missing in zip(nodes, answers, strict=True)
+        for name in missing
+    ]

@@ -27,7 +27,7 @@ from walkers.training.evaluation import per_target_return, with_normalized_score
 from walkers.training.loops import train_offline, train_online, train_population, train_sb3
 from walkers.training.provenance import MEMBER_TAG, POPULATION_TAG, shareable
 from walkers.training.run import ENV_STEP_AXIS, GRADIENT_STEP_AXIS, TrainingRun, ending
-from walkers.training.validate import is_offline, validate
+from walkers.training.validate import check_environment, is_offline, validate
 from walkers.tuning.trial import TrialReporter
 
 log = logging.getLogger("walkers")
@@ -36,6 +36,7 @@ log = logging.getLogger("walkers")
 def train(cfg: DictConfig, overrides: list[str] | tuple = ()) -> float:
     """Train as ``cfg`` says; ``overrides`` are the command-line overrides (used by resume)."""
     resume.check_resume_given(cfg.resume)
+    check_environment(cfg)  # before anything is created
     if not cfg.resume:
         validate(cfg)  # before anything is created
         warn_short_warmup(cfg)

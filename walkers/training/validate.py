@@ -8,7 +8,10 @@ allowed.
 
 from __future__ import annotations
 
+import re
+
 from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import InterpolationResolutionError
 
 from walkers.agents.hyperparameters import (
     NON_NEGATIVE_INT,
@@ -23,6 +26,7 @@ from walkers.agents.sb3_twin import import_sb3
 from walkers.agents.schemas import schema_of
 from walkers.errors import ConfigError
 from walkers.metrics import METRIC_DIRECTIONS
+from walkers.training.provenance import worker_name
 
 OPTIMIZABLE_METRICS = tuple(METRIC_DIRECTIONS)  # every metric a sweep can optimize
 DEVICES = ("auto", "cpu", "cuda")
@@ -152,3 +156,19 @@ def validate(cfg: DictConfig) -> None:
             torch.cuda.is_available(),
             "auto or cpu on this machine (torch sees no CUDA device)",
         )
+
+
+def check_environment(cfg: DictConfig) -> None:
+    """Every ``${oc.env:NAME}`` the config reads is set where this job runs: otherwise one line
+    naming the variable and the machine (a Ray worker has its node's environment as it was at
+    ``ray start``: a variable exported afterwards never reaches it)."""
+    try:
+        OmegaConf.to_container(cfg, resolve=True)
+    except InterpolationResolutionError as e:
+        found = re.search(r"Environment variable '([^']+)' not found", str(e))
+        if found is None:
+            raise
+        raise ConfigError(
+            f"{found.group(1)} is not set on {worker_name()}, where this job runs: export it "
+            "there (on a Ray cluster: before `ray start` on that machine)"
+        ) from None

@@ -57,9 +57,11 @@ from optuna.trial import TrialState
 
 from walkers import tracking
 from walkers.errors import ConfigError
+from walkers.tracking.hydra_callbacks import missing_on_ray_nodes
 from walkers.tuning.objective import check_objective, record_outcome, sweep_direction, trials_done
 from walkers.tuning.optuna_internals import stored_trial, trial_id
 from walkers.tuning.studies import (
+    STORAGE_ENV,
     Heartbeats,
     absolute_storage,
     check_passed_by_reference,
@@ -160,6 +162,21 @@ class PruningOptunaSweeper(OptunaSweeperImpl):
                 "optuna=postgres needs its database: export WALKERS_OPTUNA_STORAGE="
                 "'postgresql+psycopg://<user>:<password>@<host>/<database>' (`make stack` "
                 "prints one) or pass optuna.storage=..."
+            )
+        self._check_job_environment()
+
+    def _check_job_environment(self) -> None:
+        """The nodes that will run the jobs have what the jobs read from their environment (the
+        study storage's URL, passed by reference when it holds a password)."""
+        reads = [STORAGE_ENV] if f"oc.env:{STORAGE_ENV}" in str(job_storage(self.storage)) else []
+        missing = missing_on_ray_nodes(self.config.hydra.launcher, reads)
+        if missing:
+            node, name = missing[0]
+            more = f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""
+            raise ConfigError(
+                f"{name} is not set on Ray node {node}{more}: the study's jobs read it there; "
+                f"export it on that machine before `ray start` (a Ray worker keeps the "
+                "environment its node had at `ray start`)"
             )
 
     def _claim(self, study: optuna.Study, beats: Heartbeats) -> list[optuna.Trial]:

@@ -1,0 +1,158 @@
+"""A/B studies (``-m ab=NAME``), run as a user runs them: real jobs, real stores, a real kill -9
+of the driver, and the rerun that picks up where it stopped."""
+
+from __future__ import annotations
+
+import collections
+import os
+import signal
+import time
+
+import pytest
+
+from tests.conftest import all_runs, one_line_error, run_cli, spawn_cli
+
+
+#: Two arms that cannot be confused: the same untrained REINFORCE, one with episodes half as
+#: long on Pendulum (about half the negative return).
+def arms(mapping: str) -> list[str]:
+    """Command-line overrides that replace the study file's arms (a user edits the file)."""
+    return ["~hydra.sweeper.arms", f"+hydra.sweeper.arms={mapping}"]
+
+
+OBVIOUS = arms("{short:'algo=reinforce env.max_episode_steps=100',long:'algo=reinforce'}")
+TINY_JOBS = [
+    "total_steps=400",
+    "eval_every=200",
+    "eval_episodes=2",
+    "checkpoint_every=200",
+    "hydra.sweeper.envs=[pendulum]",
+    "hydra.sweeper.seeds={min:5,max:7,per_round:1}",
+]
+
+
+def study(store, *overrides: str, name: str = "t") -> list[str]:
+    return [
+        "-m",
+        "ab=tiny",
+        f"hydra.sweeper.name={name}",
+        *TINY_JOBS,
+        *overrides,
+        *store["overrides"],
+    ]
+
+
+def job_runs(store) -> list:
+    return [r for r in all_runs(store["client"]) if "walkers.job_key" in r.data.tags]
+
+
+def study_run(store):
+    (run,) = [r for r in all_runs(store["client"]) if r.data.tags.get("walkers.kind") == "ab"]
+    return run
+
+
+def test_an_obvious_difference_stops_at_the_minimum_seeds_and_a_rerun_runs_nothing(store):
+    result = run_cli(study(store, *OBVIOUS), cwd=store["path"])
+    assert result.returncode == 0, result.stderr[-3000:]
+    runs = job_runs(store)
+    assert len(runs) == 10 and {r.info.status for r in runs} == {"FINISHED"}
+    seeds = collections.Counter(r.data.tags["walkers.job_key"].rsplit("/", 1)[0] for r in runs)
+    assert seeds == {"ab/t/short/pendulum": 5, "ab/t/long/pendulum": 5}
+    parent = study_run(store)
+    assert parent.info.status == "FINISHED"
+    assert {r.data.tags["mlflow.parentRunId"] for r in runs} == {parent.info.run_id}
+    assert parent.data.tags["answer.short_vs_long_on_pendulum"] == "A better"
+    assert "short is better than long on pendulum (5 seeds per arm" in result.stdout
+    assert "?workflowType=machine_learning" in result.stdout  # the link opens the runs view
+
+    again = run_cli(study(store, *OBVIOUS), cwd=store["path"])
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert len(job_runs(store)) == 10  # nothing ran twice
+    assert "short is better than long on pendulum (5 seeds per arm" in again.stdout
+    assert study_run(store).info.status == "FINISHED"
+
+    # the study file edited: an arm is one configuration, so a changed arm is refused
+    edited = arms(
+        "{short:'algo=reinforce env.max_episode_steps=100',long:'algo=reinforce algo.lr=0.01'}"
+    )
+    line = one_line_error(run_cli(study(store, *edited), cwd=store["path"]))
+    assert "arm 'long' on pendulum has changed since its runs started (algo.lr" in line
+    assert len(job_runs(store)) == 10
+
+
+def test_two_identical_arms_end_equal_or_not_settled_never_better(store):
+    same = arms("{a:'algo=reinforce',b:'algo=reinforce'}")
+    result = run_cli(study(store, *same, "hydra.sweeper.smallest_difference=50"), cwd=store["path"])
+    assert result.returncode == 0, result.stderr[-3000:]
+    answer = study_run(store).data.tags["answer.a_vs_b_on_pendulum"]
+    assert answer in ("equal", "not settled")
+    per_arm = collections.Counter(
+        r.data.tags["walkers.job_key"].split("/")[2] for r in job_runs(store)
+    )
+    assert per_arm["a"] == per_arm["b"] <= 7
+
+
+@pytest.mark.parametrize("launcher", ["basic", "joblib"])
+def test_a_rerun_after_kill_9_of_the_driver_finishes_every_seed_once(store, launcher):
+    args = study(
+        store,
+        *OBVIOUS,
+        "total_steps=3000",
+        "checkpoint_every=500",
+        "eval_every=500",
+        f"hydra/launcher={launcher}",
+        "hydra.launcher.n_jobs=2" if launcher == "joblib" else "progress=false",
+    )
+    proc = spawn_cli(args, cwd=store["path"], new_session=True)
+    try:
+        deadline = time.monotonic() + 240
+        while not any(r.info.status == "FINISHED" for r in job_runs(store)):
+            assert proc.poll() is None, proc.communicate()[0][-3000:]
+            assert time.monotonic() < deadline
+            time.sleep(0.5)
+        time.sleep(1.0)
+        os.killpg(proc.pid, signal.SIGKILL)  # the driver and its workers, as a reboot would
+    finally:
+        proc.kill()
+        proc.communicate()
+    left = collections.Counter(r.info.status for r in job_runs(store))
+    assert left["RUNNING"] >= 1, left  # what the kill left behind
+
+    result = run_cli([a for a in args], cwd=store["path"])
+    assert result.returncode == 0, result.stderr[-3000:]
+    runs = job_runs(store)
+    keys = [r.data.tags["walkers.job_key"] for r in runs]
+    assert len(keys) == len(set(keys)) == 10, keys  # every seed once, none twice
+    assert {r.info.status for r in runs} == {"FINISHED"}
+    assert sorted(int(k.rsplit("/", 1)[1]) for k in keys if "/short/" in k) == [0, 1, 2, 3, 4]
+    assert "continuing it from its last checkpoint" in result.stdout + result.stderr
+    assert study_run(store).info.status == "FINISHED"
+
+
+@pytest.mark.parametrize(
+    ("override", "expected"),
+    [
+        (arms("{a:'algo=a2c',b:'algo=td3'}"), "arm 'a': algo='a2c' is not allowed: must be one of"),
+        ("hydra.sweeper.envs=[pendulum,walker3d]", "env='walker3d' is not allowed: must be one of"),
+        (
+            "hydra.sweeper.seeds={min:5,max:3,per_round:1}",
+            "hydra.sweeper.seeds.max=3 is not allowed: at least seeds.min=5",
+        ),
+        (
+            "hydra.sweeper.alpha=1.5",
+            "hydra.sweeper.alpha=1.5 is not allowed: must be a number in (0, 1)",
+        ),
+        (arms("{a:'algo=td3 algo.lr=-1',b:'algo=td3'}"), "arm 'a' on pendulum: algo.lr=-1"),
+        ("seed=0,1", "seed=0,1: a study runs its own seeds and arms"),
+    ],
+)
+def test_bad_studies_are_refused_in_one_line_before_anything_runs(store, override, expected):
+    overrides = override if isinstance(override, list) else [override]
+    line = one_line_error(run_cli(study(store, *overrides), cwd=store["path"]))
+    assert expected in line, line
+    assert all_runs(store["client"]) == []
+
+
+def test_a_study_without_multirun_is_refused(store):
+    line = one_line_error(run_cli(["ab=tiny", *store["overrides"]], cwd=store["path"]))
+    assert "ab=tiny is an A/B study: run it with -m" in line

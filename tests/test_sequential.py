@@ -1,0 +1,76 @@
+"""The A/B study's stopping rule, checked by simulation through the study's own round logic:
+the family-wise error rate stays at or below alpha for any shape of returns, an obvious
+difference stops at the first look, and identical arms are never called different more often
+than alpha allows. (Figures at full size: `make bench-sequential`.)"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy import stats as sps
+
+from walkers.ab.simulation import SHAPES, simulate, spec_for
+from walkers.analysis.sequential import A_BETTER, Design, answer
+
+
+def consistent_with_at_most(alpha: float, errors: int, n: int) -> bool:
+    """Whether ``errors`` in ``n`` simulated studies is consistent with a rate <= ``alpha``: the
+    rate's one-sided 99.9% Clopper-Pearson lower bound is at or below it."""
+    return errors == 0 or float(sps.beta.ppf(0.001, errors, n - errors + 1)) <= alpha
+
+
+@pytest.mark.parametrize("shape", SHAPES)
+def test_one_pair_keeps_the_error_rate_at_alpha(shape):
+    spec = spec_for(arms=2, envs=1, seeds=(5, 11, 2), alpha=0.05, delta=10)
+    rng = np.random.default_rng(0)
+    n = 400
+    wrong = sum(simulate(spec, {"arm0": 50, "arm1": 50}, shape, 10.0, rng).wrong for _ in range(n))
+    assert consistent_with_at_most(0.05, wrong, n), wrong
+
+
+@pytest.mark.parametrize("shape", SHAPES)
+def test_several_pairs_and_envs_keep_the_family_wise_rate_at_alpha(shape):
+    # 3 arms x 2 envs + the aggregate: 9 questions share alpha
+    spec = spec_for(arms=3, envs=2, seeds=(5, 7, 2), alpha=0.05, delta=10)
+    rng = np.random.default_rng(1)
+    n = 60
+    equal = {"arm0": 50, "arm1": 50, "arm2": 50}
+    wrong = sum(simulate(spec, equal, shape, 10.0, rng).wrong for _ in range(n))
+    assert consistent_with_at_most(0.05, wrong, n), wrong
+
+
+def test_an_equal_answer_needs_the_difference_below_delta():
+    # arms a smallest difference apart are never called equal more often than alpha
+    spec = spec_for(arms=2, envs=1, seeds=(5, 11, 2), alpha=0.05, delta=10)
+    rng = np.random.default_rng(2)
+    n = 300
+    wrong = sum(
+        simulate(spec, {"arm0": 60, "arm1": 50}, "normal", 3.0, rng).wrong for _ in range(n)
+    )
+    assert consistent_with_at_most(0.05, wrong, n), wrong
+
+
+def test_an_obvious_difference_stops_at_the_first_look():
+    design = Design.of(alpha=0.05, questions=1, seeds_min=5, seeds_max=15, per_round=2, delta=10)
+    rng = np.random.default_rng(3)
+    result = answer(rng.normal(100, 5, 15), rng.normal(0, 5, 15), design)
+    assert (result.decision, result.seeds, result.look) == (A_BETTER, 5, 0)
+
+
+def test_identical_arms_use_the_seeds_they_need_and_no_more():
+    spec = spec_for(arms=2, envs=1, seeds=(5, 9, 2), alpha=0.05, delta=30)
+    rng = np.random.default_rng(4)
+    outcomes = [simulate(spec, {"arm0": 50, "arm1": 50}, "normal", 5.0, rng) for _ in range(50)]
+    # a spread well under the smallest difference: "equal", at the first look (5 seeds per arm)
+    equal = [o for o in outcomes if o.decisions["arm0 vs arm1 on env0"] == "equal"]
+    assert len(equal) >= 45
+    assert all(o.seeds == 2 * 5 for o in equal)
+
+
+def test_the_levels_spend_alpha_exactly_once():
+    design = Design.of(alpha=0.05, questions=3, seeds_min=5, seeds_max=20, per_round=5, delta=1)
+    assert design.looks == (5, 10, 15, 20)
+    assert math.isclose(sum(design.level(k) for k in range(4)), 0.05 / 3)
+    assert all(design.level(k) > 0 for k in range(4))

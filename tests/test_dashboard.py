@@ -11,8 +11,8 @@ import urllib.request
 
 import optuna
 
-from tests.conftest import one_line_error, run_cli
 from tests.cluster_kit import free_port
+from tests.conftest import one_line_error, run_cli
 
 
 def test_the_dashboard_serves_the_studies_of_the_sweeps_storage(tmp_path):

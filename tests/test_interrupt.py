@@ -33,20 +33,26 @@ def test_sigterm_saves_a_checkpoint_and_ends_killed(store):
     code, _, stderr = signal_once_checkpointed(args, store["path"], "best.pt", signal.SIGTERM)
     assert code == 130, stderr[-2000:]
     (run,) = all_runs(store["client"])
+    step = killed_with_checkpoint_then_resumed(store, run)
+    assert 500 <= step < 100000
+
+
+def killed_with_checkpoint_then_resumed(store, run) -> int:
+    """``run`` ended KILLED with a ``last.pt``; ``resume=`` continues it to FINISHED. Returns the
+    checkpoint's step."""
     assert run.info.status == "KILLED"
     path = store["client"].download_artifacts(
         run.info.run_id, "checkpoints/last.pt", str(store["path"])
     )
     step = checkpoints.load(path)["trainer"]["step"]
-    assert 500 <= step < 100000
-
     resumed = run_cli(
         [f"resume={run.info.run_id}", f"total_steps={step + 200}", *store["overrides"]],
         cwd=store["path"],
     )
     assert resumed.returncode == 0, resumed.stderr[-2000:]
-    (run,) = all_runs(store["client"])
-    assert run.info.status == "FINISHED"
+    (again,) = all_runs(store["client"])
+    assert again.info.status == "FINISHED"
+    return step
 
 
 def test_a_terminated_population_resumes_together(store):
@@ -109,17 +115,5 @@ def test_signals_to_the_whole_group_while_it_ends_leave_it_killed_with_its_check
     assert "Traceback" not in stderr, stderr[-3000:]
     assert stderr.count("already stopping") <= 1, stderr[-3000:]
     (run,) = all_runs(store["client"])
-    assert run.info.status == "KILLED"
-    last = store["client"].download_artifacts(
-        run.info.run_id, "checkpoints/last.pt", str(store["path"])
-    )
-    step = checkpoints.load(last)["trainer"]["step"]
     assert f"continue it: python -m walkers.train resume={run.info.run_id}" in stdout + stderr
-
-    resumed = run_cli(
-        [f"resume={run.info.run_id}", f"total_steps={step + 200}", *store["overrides"]],
-        cwd=store["path"],
-    )
-    assert resumed.returncode == 0, resumed.stderr[-2000:]
-    (run,) = all_runs(store["client"])
-    assert run.info.status == "FINISHED"
+    killed_with_checkpoint_then_resumed(store, run)

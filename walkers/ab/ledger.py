@@ -18,7 +18,7 @@ from pathlib import Path
 from walkers import tracking
 from walkers.ab.rounds import Scores, Standing
 from walkers.ab.spec import StudySpec
-from walkers.analysis.arms import arm_config, run_params
+from walkers.analysis.arms import arm_config, differing_keys, run_params
 from walkers.errors import ConfigError
 
 log = logging.getLogger("walkers")
@@ -94,7 +94,7 @@ def check_arms_unchanged(runs: list, spec: StudySpec, configs: Mapping[tuple[str
             continue
         arm, env, _ = place
         then, now = arm_config(run_params(run)), arm_config(configs[(arm, env)])
-        changed = sorted(k for k in then.keys() | now.keys() if then.get(k) != now.get(k))
+        changed = differing_keys([then, now])
         if changed:
             key = changed[0]
             raise ConfigError(

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from omegaconf import DictConfig, OmegaConf
 
+from walkers.analysis.arms import differing_keys
 from walkers.errors import ConfigError
 from walkers.tracking import flatten
 from walkers.training.run import TrainingRun
@@ -81,7 +82,7 @@ def load_population(client, cfg: DictConfig, overrides):
     (first_cfg, first_state), first = members[0], shared_settings(members[0][0])
     for run_id, (member_cfg, state) in zip(run_ids[1:], members[1:], strict=True):
         other = shared_settings(member_cfg)
-        differing = sorted(k for k in first.keys() | other.keys() if first.get(k) != other.get(k))
+        differing = differing_keys([first, other])
         if differing:
             key = differing[0]
             raise ConfigError(

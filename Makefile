@@ -53,7 +53,11 @@ plan: $(STAMP)  ## how many seeds a study needs, from pilot runs (ARGS="env=pend
 	$(PY) -m walkers.plan $(ARGS)
 
 test: $(STAMP)  ## run the test suite (real tiny trainings, sweeps, offline RL, reports; one worker per core)
-	$(PY) -m pytest -q -n auto --dist loadscope --durations=10 -m "not cluster" $(ARGS)
+	$(PY) -m pytest -q -n auto --dist loadscope --durations=10 -m "not cluster and not browser" $(ARGS)
+
+ui-check: $(STAMP)  ## the links walkers prints open MLflow's training view, in a real headless Chromium (installs Debian's chromium if missing)
+	@command -v chromium >/dev/null || (apt-get update -qq && apt-get install -y -qq chromium >/dev/null)
+	$(PY) -m pytest -q -m browser $(ARGS)
 
 test-cluster: $(STAMP)  ## the scale-out tests: a real Ray cluster on loopback, PostgreSQL, an MLflow server (minutes)
 	$(PY) -m pytest -q -m cluster --durations=10 $(ARGS)
@@ -98,4 +102,4 @@ clean:  ## remove run outputs (mlflow.db, mlartifacts/, outputs/, multirun/, .wa
 	rm -rf mlflow.db mlruns mlartifacts outputs multirun .walkers reports .pytest_cache .ruff_cache
 	find . -name __pycache__ -type d -prune -not -path './$(VENV)/*' -exec rm -rf {} +
 
-.PHONY: help install train ab ab-all study offline compare plan dashboard bench-sequential test test-cluster chaos stack bench bench-throughput bench-learning bench-scale menus lint ui clean
+.PHONY: help install train ab ab-all study offline compare plan dashboard bench-sequential ui-check test test-cluster chaos stack bench bench-throughput bench-learning bench-scale menus lint ui clean

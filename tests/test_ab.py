@@ -131,6 +131,32 @@ def test_a_rerun_after_kill_9_of_the_driver_finishes_every_seed_once(store, laun
     assert study_run(store).info.status == "FINISHED"
 
 
+def test_a_terminated_study_ends_everything_it_started_and_reruns_to_its_answer(store):
+    args = study(store, *OBVIOUS, "total_steps=3000", "checkpoint_every=500", "eval_every=500")
+    proc = spawn_cli(args, cwd=store["path"], new_session=True)
+    try:
+        deadline = time.monotonic() + 240
+        while not any(r.info.status == "FINISHED" for r in job_runs(store)):
+            assert proc.poll() is None, proc.communicate()[0][-3000:]
+            assert time.monotonic() < deadline
+            time.sleep(0.5)
+        os.killpg(proc.pid, signal.SIGTERM)  # `kill -TERM -<pgid>`, scancel, timeout
+        stdout, stderr = proc.communicate(timeout=180)
+    finally:
+        proc.kill()
+    assert proc.returncode == 130, stderr[-3000:]
+    assert "interrupted: study 't' stopped" in stderr and "Traceback" not in stderr
+    statuses = collections.Counter(r.info.status for r in all_runs(store["client"]))
+    assert "RUNNING" not in statuses and statuses["KILLED"] >= 2, statuses  # a job and the study
+    assert study_run(store).info.status == "KILLED"
+
+    again = run_cli(args, cwd=store["path"])
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert study_run(store).info.status == "FINISHED"
+    finished = [r for r in job_runs(store) if r.info.status == "FINISHED"]
+    assert len(finished) == 10
+
+
 @pytest.mark.parametrize(
     ("override", "expected"),
     [

@@ -126,9 +126,10 @@ class ABStudySweeper(Sweeper):
         ]
         try:
             returns = self.launcher.launch(batch, initial_job_idx=self.job_idx)
-        except SystemExit as e:  # a job interrupted in this process (basic launcher) exits 130
-            end_jobs_runs(client, experiment, keys, KeyboardInterrupt())
-            if e.code == 130:
+        except SystemExit as e:  # a job in this process (basic launcher) exits: 130 interrupted
+            interrupted = e.code == 130
+            end_jobs_runs(client, experiment, keys, KeyboardInterrupt() if interrupted else e)
+            if interrupted:
                 raise KeyboardInterrupt from e
             raise
         except BaseException as e:

@@ -25,7 +25,7 @@ def consistent_with_at_most(alpha: float, errors: int, n: int) -> bool:
 def test_one_pair_keeps_the_error_rate_at_alpha(shape):
     spec = spec_for(arms=2, envs=1, seeds=(5, 11, 2), alpha=0.05, delta=10)
     rng = np.random.default_rng(0)
-    n = 400
+    n = 250
     wrong = sum(simulate(spec, {"arm0": 50, "arm1": 50}, shape, 10.0, rng).wrong for _ in range(n))
     assert consistent_with_at_most(0.05, wrong, n), wrong
 

@@ -1,0 +1,79 @@
+"""A/B studies under faults: a kill -9 of the driver and a SIGTERM to the whole process group,
+then the same command again (split from test_ab.py so the two run on separate workers)."""
+
+from __future__ import annotations
+
+import collections
+import os
+import signal
+import time
+
+import pytest
+
+from tests.conftest import all_runs, run_cli, spawn_cli
+from tests.test_ab import OBVIOUS, job_runs, study, study_run
+
+
+@pytest.mark.parametrize("launcher", ["basic", "joblib"])
+def test_a_rerun_after_kill_9_of_the_driver_finishes_every_seed_once(store, launcher):
+    args = study(
+        store,
+        *OBVIOUS,
+        "total_steps=3000",
+        "checkpoint_every=500",
+        "eval_every=500",
+        f"hydra/launcher={launcher}",
+        "hydra.launcher.n_jobs=2" if launcher == "joblib" else "progress=false",
+    )
+    proc = spawn_cli(args, cwd=store["path"], new_session=True)
+    try:
+        deadline = time.monotonic() + 240
+        while not any(r.info.status == "FINISHED" for r in job_runs(store)):
+            assert proc.poll() is None, proc.communicate()[0][-3000:]
+            assert time.monotonic() < deadline
+            time.sleep(0.5)
+        time.sleep(1.0)
+        os.killpg(proc.pid, signal.SIGKILL)  # the driver and its workers, as a reboot would
+    finally:
+        proc.kill()
+        proc.communicate()
+    left = collections.Counter(r.info.status for r in job_runs(store))
+    assert left["RUNNING"] >= 1, left  # what the kill left behind
+
+    result = run_cli([a for a in args], cwd=store["path"])
+    assert result.returncode == 0, result.stderr[-3000:]
+    runs = job_runs(store)
+    finished = [r.data.tags["walkers.job_key"] for r in runs if r.info.status == "FINISHED"]
+    assert len(finished) == len(set(finished)) == 10, finished  # every seed once, none twice
+    for run in runs:  # a run killed before its first checkpoint was superseded by a new one
+        assert run.info.status == "FINISHED" or "walkers.superseded" in run.data.tags, run.info
+    assert sorted(int(k.rsplit("/", 1)[1]) for k in finished if "/short/" in k) == [0, 1, 2, 3, 4]
+    superseded = any("walkers.superseded" in r.data.tags for r in runs)
+    assert "continuing it from its last checkpoint" in result.stdout + result.stderr or superseded
+    assert study_run(store).info.status == "FINISHED"
+
+
+def test_a_terminated_study_ends_everything_it_started_and_reruns_to_its_answer(store):
+    args = study(store, *OBVIOUS, "total_steps=3000", "checkpoint_every=500", "eval_every=500")
+    proc = spawn_cli(args, cwd=store["path"], new_session=True)
+    try:
+        deadline = time.monotonic() + 240
+        while not any(r.info.status == "FINISHED" for r in job_runs(store)):
+            assert proc.poll() is None, proc.communicate()[0][-3000:]
+            assert time.monotonic() < deadline
+            time.sleep(0.5)
+        os.killpg(proc.pid, signal.SIGTERM)  # `kill -TERM -<pgid>`, scancel, timeout
+        stdout, stderr = proc.communicate(timeout=180)
+    finally:
+        proc.kill()
+    assert proc.returncode == 130, stderr[-3000:]
+    assert "interrupted: study 't' stopped" in stderr and "Traceback" not in stderr
+    statuses = collections.Counter(r.info.status for r in all_runs(store["client"]))
+    assert "RUNNING" not in statuses and statuses["KILLED"] >= 2, statuses  # a job and the study
+    assert study_run(store).info.status == "KILLED"
+
+    again = run_cli(args, cwd=store["path"])
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert study_run(store).info.status == "FINISHED"
+    finished = [r for r in job_runs(store) if r.info.status == "FINISHED"]
+    assert len(finished) == 10

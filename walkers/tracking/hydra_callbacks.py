@@ -120,17 +120,17 @@ def missing_on_ray_nodes(launcher: DictConfig, names: list[str]) -> list[tuple[s
         return [name for name in wanted if not os.environ.get(name)]
 
     nodes = [n for n in ray.nodes() if n.get("Alive")]
-    answers = ray.get(
-        [
-            probe.options(
-                scheduling_strategy=NodeAffinitySchedulingStrategy(n["NodeID"], soft=False)
-            ).remote(names)
-            for n in nodes
-        ],
-        timeout=120,
-    )
-    return [
-        (f"{n.get('NodeManagerAddress')} (node {n['NodeID'][:12]})", name)
-        for n, missing in zip(nodes, answers, strict=True)
-        for name in missing
+    asked = [
+        probe.options(
+            scheduling_strategy=NodeAffinitySchedulingStrategy(n["NodeID"], soft=False)
+        ).remote(names)
+        for n in nodes
     ]
+    missing = []
+    for node, answer in zip(nodes, asked, strict=True):
+        where = f"{node.get('NodeManagerAddress')} (node {node['NodeID'][:12]})"
+        try:
+            missing += [(where, name) for name in ray.get(answer, timeout=120)]
+        except Exception as e:  # a node going away: its jobs go elsewhere; never block on it
+            log.warning("could not ask Ray node %s for its environment: %s", where, e)
+    return missing

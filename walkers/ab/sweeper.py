@@ -45,6 +45,10 @@ log = logging.getLogger("walkers")
 STUDY_KEYS = ("seed", "env", "job_key", "trial.parent_run_id")
 
 
+class JobsFailed(RuntimeError):
+    """Jobs of a round raised (on a cluster: a job's error comes back as its result)."""
+
+
 class ABStudySweeper(Sweeper):
     def __init__(self, **declared: Any) -> None:
         self.declared = declared
@@ -84,6 +88,9 @@ class ABStudySweeper(Sweeper):
             )
             log.info("open it: `make ui`, then %s", study.url)
             sys.exit(130)
+        except JobsFailed as e:  # the study run is FAILED; its finished jobs are kept
+            print(f"error: {e}", file=sys.stderr)
+            sys.exit(1)
         print(ledger.standing_table(final))
         for line in verdicts(final):
             log.info("%s", line)
@@ -141,7 +148,7 @@ class ABStudySweeper(Sweeper):
         ]
         if failed:
             key, ret = failed[0]
-            raise RuntimeError(
+            raise JobsFailed(
                 f"{len(failed)} job(s) of study {spec.name!r} failed, first {key}: "
                 f"{type(ret._return_value).__name__}: {ret._return_value}; fix it and run the "
                 "same command again (finished jobs are kept)"

@@ -8,6 +8,8 @@ import collections
 import pytest
 
 from tests.conftest import all_runs, one_line_error, run_cli
+from walkers.ab.spec import StudySpec
+from walkers.errors import ConfigError
 
 
 #: Two arms that cannot be confused: the same untrained REINFORCE, one with episodes half as
@@ -93,15 +95,7 @@ def test_two_identical_arms_end_equal_or_not_settled_never_better(store):
     ("override", "expected"),
     [
         (arms("{a:'algo=a2c',b:'algo=td3'}"), "arm 'a': algo='a2c' is not allowed: must be one of"),
-        ("hydra.sweeper.envs=[pendulum,walker3d]", "env='walker3d' is not allowed: must be one of"),
-        (
-            "hydra.sweeper.seeds={min:5,max:3,per_round:1}",
-            "hydra.sweeper.seeds.max=3 is not allowed: at least seeds.min=5",
-        ),
-        (
-            "hydra.sweeper.alpha=1.5",
-            "hydra.sweeper.alpha=1.5 is not allowed: must be a number in (0, 1)",
-        ),
+        ("hydra.sweeper.alpha=1.5", "hydra.sweeper.alpha=1.5 is not allowed: must be a number"),
         (arms("{a:'algo=td3 algo.lr=-1',b:'algo=td3'}"), "arm 'a' on pendulum: algo.lr=-1"),
         ("seed=0,1", "seed=0,1: a study runs its own seeds and arms"),
     ],
@@ -111,6 +105,37 @@ def test_bad_studies_are_refused_in_one_line_before_anything_runs(store, overrid
     line = one_line_error(run_cli(study(store, *overrides), cwd=store["path"]))
     assert expected in line, line
     assert all_runs(store["client"]) == []
+
+
+@pytest.mark.parametrize(
+    ("changed", "expected"),
+    [
+        ({"envs": ["pendulum", "walker3d"]}, "env='walker3d' is not allowed: must be one of"),
+        ({"seeds": {"min": 5, "max": 3, "per_round": 1}}, "seeds.max=3 is not allowed: at least"),
+        ({"alpha": 0.0}, "hydra.sweeper.alpha=0.0 is not allowed: must be a number in (0, 1)"),
+        ({"arms": {"only": "algo=td3"}}, "a mapping of at least two arms"),
+        (
+            {"arms": {"a": "algo=td3 seed=3", "b": "algo=td3"}},
+            "the study sets seed, env and job_key",
+        ),
+        ({"score": "final/steps_to_threshold"}, "hydra.sweeper.score='final/steps_to_threshold'"),
+    ],
+)
+def test_the_study_declaration_is_checked_in_one_line(changed, expected):
+    """The same checks the sweeper runs first (in-process: one CLI case above proves the line)."""
+    declared = {
+        "name": "t",
+        "arms": {"a": "algo=td3", "b": "algo=sac"},
+        "envs": ["pendulum"],
+        "seeds": {"min": 5, "max": 7, "per_round": 1},
+        "score": "final/return_mean",
+        "alpha": 0.05,
+        "smallest_difference": 10,
+    }
+    with pytest.raises(ConfigError) as refused:
+        StudySpec.parse(**(declared | changed))
+    assert expected in str(refused.value)
+    assert "\n" not in str(refused.value)
 
 
 def test_a_study_without_multirun_is_refused(store):

@@ -53,7 +53,7 @@ def test_performance_profile_counts_runs_above_tau():
 
 def test_a_suite_report_over_two_envs(store):
     runs = run_cli(
-        ["-m", "algo=reinforce,td3", "env=pendulum,inverted_pendulum", "seed=0,1,2",
+        ["-m", "algo=reinforce,td3", "env=pendulum,inverted_pendulum", "seed=0,1",
          "total_steps=300", "eval_every=100", "eval_episodes=1",
          "progress=false", "tracking.experiment=suite", *store["overrides"]],
         cwd=store["path"],
@@ -87,4 +87,4 @@ def test_a_suite_report_over_two_envs(store):
                 module="walkers.compare")
     )  # fmt: skip
     assert "envs: 'walker3d' is not allowed: must be one of" in line
-    assert len(all_runs(store["client"])) >= 12
+    assert len(all_runs(store["client"])) >= 8

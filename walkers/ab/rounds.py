@@ -30,10 +30,6 @@ class Standing:
     normalized: dict[tuple[str, str], list[float]]  # per (arm, env), in seed order
 
     @property
-    def finished(self) -> bool:
-        return all(q.answer.decision != CONTINUE for q in self.questions)
-
-    @property
     def look(self) -> int:
         """The latest look any question reached (0-based; -1: none yet)."""
         return max(q.answer.look for q in self.questions)

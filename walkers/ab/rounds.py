@@ -9,7 +9,6 @@ from dataclasses import dataclass
 
 from walkers.ab.spec import StudySpec
 from walkers.analysis.sequential import (
-    CONTINUE,
     Question,
     answer,
     next_look_seeds,

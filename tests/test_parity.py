@@ -1,0 +1,641 @@
+"""Parity with Stable-Baselines3 (2.9.2), proven update by update, for TD3, DDPG, SAC and PPO.
+
+Each test builds walkers' agent and SB3's model from the same walkers hyperparameters (SB3's
+through the impl=sb3 mapping, :class:`walkers.agents.sb3_twin.SB3Twin`), with 32-32 networks on a
+made-up space (obs 3, actions 2 in [-1, 1]: SB3 acts in [-1, 1], so with these bounds both sides
+feed their critics the same numbers); copies SB3's weights into walkers' (SB3's targets perturbed
+first, so no target equals its online net); feeds both the same data and the same random
+numbers; runs the update(s) and compares every weight, target, temperature and Adam moment
+(exp_avg, exp_avg_sq, step):
+
+- off-policy: ``agent.sample`` and ``model.replay_buffer.sample`` return the same batch; SB3
+  draws its own noise (TD3: one ``Tensor.normal_`` for the target smoothing; SAC: two
+  ``Normal.rsample``, first eps for a ~ pi(.|s), then for a' ~ pi(.|s')), which the test records
+  and hands to walkers through ``agent.update_noise``;
+- PPO: one rollout (a termination, a time-limit truncation and an unfinished tail) written into
+  SB3's RolloutBuffer as its collect_rollouts would and into walkers' Rollout; SB3's minibatch
+  permutations (``np.random.permutation`` in ``RolloutBuffer.get``) are walkers' own.
+
+Gaps: weights as max abs difference; moments as max abs difference over the largest magnitude of
+the tensor (moments range from 1e-12 to 1); Adam step counts exactly. Proven:
+
+- TD3 (critic-only updates and actor updates, 4 updates), DDPG (2), PPO without value clipping
+  (3 epochs x 4 minibatches): equal to float32 rounding (WEIGHT_ATOL, MOMENT_RTOL).
+- SAC (3 updates): alpha equal to rounding, so the order of the temperature step (SB3 steps it
+  before the critics, walkers after the actor) changes nothing: both use the alpha from before
+  the update in the critic target and the actor loss. Two real differences, both SB3's choices
+  and each shown to be the whole gap by undoing it on SB3's side:
+  1. SB3's critic loss is 1/2 sum MSE, walkers' sum MSE: walkers' critic moments are exactly 2x
+     and 4x SB3's, and the critic weights differ by up to ~1e-5 where a gradient is so small
+     that Adam's eps (1e-8) matters (halving SB3's critic Adam eps removes the gap);
+  2. SB3's log pi subtracts log(1 - tanh(u)^2 + 1e-6), walkers' the exact log(1 - tanh(u)^2):
+     actor moments ~1e-4 apart (SB3's epsilon set to 0 removes the gap).
+- PPO with value clipping (walkers: ppo2's max((V-R)^2, (clip(V)-R)^2), SB3: clipped V): the
+  policy and its moments agree, the value net does not; with SB3's form put in place of walkers'
+  ``value_loss`` everything agrees again, so that function is the one difference.
+- Each twin has a test changing one reward on SB3's side only: the weights then part, so the
+  comparisons are not vacuous.
+"""
+
+from __future__ import annotations
+
+import random
+from collections.abc import Callable
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from walkers.agents.base import Transition
+from walkers.agents.ddpg import DDPG
+from walkers.agents.factory import defaults_for
+from walkers.agents.networks import EnsembleLinear
+from walkers.agents.ppo import PPO
+from walkers.agents.sac import SAC
+from walkers.agents.td3 import TD3
+from walkers.data.replay import Batch
+
+pytest.importorskip("stable_baselines3")
+from stable_baselines3.common.type_aliases import ReplayBufferSamples  # noqa: E402
+
+from walkers.agents.sb3_twin import SB3Twin  # noqa: E402
+
+OBS_DIM, ACT_DIM, BATCH, HIDDEN = 3, 2, 32, [32, 32]
+LOW, HIGH = [-1.0] * ACT_DIM, [1.0] * ACT_DIM
+
+#: Tolerances. Measured on this machine (max over every group and update of these tests): weights
+#: 6e-8 (float32 rounding: fused vs for-loop Adam, lerp vs mul-add Polyak, summation order);
+#: moments 1.7e-6 (SAC with its two differences undone), 1.4e-6 (PPO), 4.4e-7 (TD3, DDPG).
+WEIGHT_ATOL = 1e-6
+MOMENT_RTOL = 1e-5
+#: SAC as SB3 ships it, measured: critic weights 8.3e-6 (the critic loss half, through Adam's
+#: eps), actor weights 7.8e-7; moments 8.3e-5 (actor), 1.0e-5 (critics), 3.7e-6 (alpha) (the log
+#: epsilon, in the actor's loss and the critics' target).
+SAC_WEIGHT_ATOL = 1e-4
+SAC_MOMENT_RTOL = 1e-3
+#: A gap no rounding explains, which the non-vacuity tests require (they measure >= 1e-3 weights).
+CLEARLY_DIFFERENT = 1e-4
+
+#: (group, walkers tensor, its SB3 tensor or per member the SB3 tensors it stacks)
+Pair = tuple[str, torch.Tensor, object]
+
+
+class TinyEnv(gym.Env):
+    """A space for SB3 to build its model on; the tests never step it."""
+
+    observation_space = gym.spaces.Box(-np.inf, np.inf, (OBS_DIM,), np.float32)
+    action_space = gym.spaces.Box(np.float32(-1), np.float32(1), (ACT_DIM,), np.float32)
+
+    def reset(self, *, seed=None, options=None):
+        return np.zeros(OBS_DIM, np.float32), {}
+
+    def step(self, action):
+        return np.zeros(OBS_DIM, np.float32), 0.0, False, False, {}
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    """Tiny matmuls: one thread (two on two loaded cores spin-wait ~50x slower)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(autouse=True)
+def _keep_global_rngs():
+    """SB3 seeds the global torch/numpy/random streams: give them back as found."""
+    states = torch.get_rng_state(), np.random.get_state(), random.getstate()
+    yield
+    torch.set_rng_state(states[0])
+    np.random.set_state(states[1])
+    random.setstate(states[2])
+
+
+# --- building both sides -------------------------------------------------------------------------
+def build(agent_class: type, algo: str, **overrides):
+    """walkers' agent and SB3's model from the same walkers hyperparameters."""
+    hp = defaults_for(agent_class, hidden_sizes=HIDDEN, **overrides)
+    twin = SB3Twin(algo, hp, OBS_DIM, LOW, HIGH, seed=0, device="cpu")
+    twin.attach(TinyEnv(), total_steps=1000)
+    return agent_class(OBS_DIM, LOW, HIGH, **hp, seed=0), twin.model
+
+
+def off_policy(agent_class: type, algo: str, **overrides):
+    return build(
+        agent_class,
+        algo,
+        batch_size=BATCH,
+        learning_starts=0,
+        buffer_size=1000,
+        lr=1e-3,
+        tau=0.05,
+        **overrides,
+    )
+
+
+# --- which walkers tensor is which SB3 tensor --------------------------------------------------
+def linears(module: nn.Module) -> list[nn.Linear]:
+    return [m for m in module.modules() if isinstance(m, nn.Linear)]
+
+
+def ensemble_pairs(group: str, ours: EnsembleLinear, members: list[list[nn.Linear]]) -> list:
+    """Walkers' ensemble layer and, per member, the SB3 layer(s) whose outputs it stacks (one,
+    or SAC's mean and log-std heads, which walkers' actor computes as one layer)."""
+    return [
+        (group, ours.weight, [[lin.weight for lin in m] for m in members]),
+        (group, ours.bias, [[lin.bias for lin in m] for m in members]),
+    ]
+
+
+def as_ours(theirs, get: Callable[[torch.Tensor], torch.Tensor]) -> torch.Tensor:
+    """SB3's tensor(s) (or their Adam moments, via ``get``) in walkers' layout: an ensemble
+    Linear's weight is (members, in, out) = W.T stacked, its bias (members, 1, out)."""
+    if isinstance(theirs, torch.Tensor):  # same layout on both sides
+        return get(theirs)
+    members = [torch.cat([get(p) for p in pieces]) for pieces in theirs]
+    return torch.stack([m.T if m.dim() == 2 else m[None] for m in members])
+
+
+def deterministic_pairs(agent, model) -> list[Pair]:
+    """TD3/DDPG: actor, actor target, the critics (members of one ensemble) and their targets."""
+    pairs = []
+    for group, ours, theirs in [
+        ("actor", agent.actor, model.actor),
+        ("actor_target", agent.actor_target, model.actor_target),
+    ]:
+        for o, t in zip(ours.layers, linears(theirs), strict=True):
+            pairs += ensemble_pairs(group, o, [[t]])
+    return pairs + critic_pairs(agent, model)
+
+
+def critic_pairs(agent, model) -> list[Pair]:
+    pairs = []
+    for group, ours, theirs in [
+        ("critic", agent.critic, model.critic),
+        ("critic_target", agent.critic_target, model.critic_target),
+    ]:
+        qs = [linears(q) for q in theirs.q_networks]
+        for i, o in enumerate([*ours.hidden, ours.out]):
+            pairs += ensemble_pairs(group, o, [[q[i]] for q in qs])
+    return pairs
+
+
+def sac_pairs(agent, model) -> list[Pair]:
+    heads = [
+        *([lin] for lin in linears(model.actor.latent_pi)),
+        [model.actor.mu, model.actor.log_std],
+    ]
+    pairs = []
+    for o, t in zip(agent.actor.layers, heads, strict=True):
+        pairs += ensemble_pairs("actor", o, [t])
+    return (
+        pairs
+        + critic_pairs(agent, model)
+        + [("temperature", agent.temperature.log_alpha, model.log_ent_coef)]
+    )
+
+
+def ppo_pairs(agent, model) -> list[Pair]:
+    p = model.policy
+    policy = linears(p.mlp_extractor.policy_net) + [p.action_net]
+    value = linears(p.mlp_extractor.value_net) + [p.value_net]
+    pairs = [("policy", agent.policy.log_std, p.log_std)]
+    for group, ours, theirs in [
+        ("policy", agent.policy.mean, policy),
+        ("value", agent.value, value),
+    ]:
+        for o, t in zip(linears(ours), theirs, strict=True):
+            pairs += [(group, o.weight, t.weight), (group, o.bias, t.bias)]
+    return pairs
+
+
+def walkers_optimizers(agent) -> list[torch.optim.Optimizer]:
+    names = ("actor_optimizer", "critic_optimizer", "alpha_optimizer", "optimizer")
+    return [getattr(agent, n) for n in names if hasattr(agent, n)]
+
+
+def sb3_optimizers(model) -> list[torch.optim.Optimizer]:
+    if hasattr(model, "rollout_buffer"):  # PPO: one optimizer for the policy and value nets
+        return [model.policy.optimizer]
+    found = [model.actor.optimizer, model.critic.optimizer]
+    temperature = getattr(model, "ent_coef_optimizer", None)  # SAC
+    return found + ([temperature] if temperature is not None else [])
+
+
+def adam_states(optimizers: list[torch.optim.Optimizer]) -> dict[torch.Tensor, dict]:
+    """Each parameter's Adam state (empty before its first step), whichever optimizer holds it."""
+    return {p: o.state.get(p, {}) for o in optimizers for g in o.param_groups for p in g["params"]}
+
+
+# --- copying and comparing ------------------------------------------------------------------------
+@torch.no_grad()
+def load_sb3_weights_into_walkers(pairs: list[Pair], model) -> None:
+    """Perturb SB3's targets (so no target equals its online net), then copy every SB3 tensor
+    into its walkers counterpart."""
+    generator = torch.Generator().manual_seed(1)
+    for name in ("actor_target", "critic_target"):
+        for p in getattr(model, name).parameters() if hasattr(model, name) else []:
+            p.add_(0.05 * torch.randn(p.shape, generator=generator))
+    for _, ours, theirs in pairs:
+        ours.copy_(as_ours(theirs, lambda p: p))
+
+
+def gaps(pairs: list[Pair], agent, model, loss_scale: dict[str, float] | None = None) -> dict:
+    """Per group: ``weights`` max abs diff; ``exp_avg``/``exp_avg_sq`` max abs diff over the
+    largest magnitude of the SB3 moment; ``step`` max abs diff. ``loss_scale[group] = c``: walkers'
+    loss for that group is c times SB3's, so its moments are compared with c and c^2 times SB3's."""
+    ours_states = adam_states(walkers_optimizers(agent))
+    theirs_states = adam_states(sb3_optimizers(model))
+    out: dict[str, float] = {}
+
+    def note(key: str, value: float) -> None:
+        out[key] = max(out.get(key, 0.0), value)
+
+    for group, ours, theirs in pairs:
+        note(f"{group}/weights", (ours - as_ours(theirs, lambda p: p)).abs().max().item())
+        ours_state = ours_states.get(ours)
+        if ours_state is None:  # a target: no optimizer
+            continue
+        theirs_first = theirs if isinstance(theirs, torch.Tensor) else theirs[0][0]
+        if bool(ours_state) != bool(theirs_states[theirs_first]):  # one side stepped, not the other
+            note(f"{group}/step", float("inf"))
+            continue
+        if not ours_state:
+            continue
+        c = (loss_scale or {}).get(group, 1.0)
+        for moment, power in (("exp_avg", 1), ("exp_avg_sq", 2)):
+            want = as_ours(theirs, lambda p, m=moment: theirs_states[p][m]) * c**power
+            scale = want.abs().max().clamp_min(1e-30)
+            note(f"{group}/{moment}", ((ours_state[moment] - want).abs().max() / scale).item())
+        step = as_ours(theirs, lambda p: theirs_states[p]["step"].expand(p.shape))
+        note(f"{group}/step", (ours_state["step"] - step).abs().max().item())
+    return out
+
+
+def assert_agree(found: dict, weight_atol=WEIGHT_ATOL, moment_rtol=MOMENT_RTOL) -> None:
+    """Every gap within tolerance; Adam's step counts equal."""
+    limits = {"weights": weight_atol, "exp_avg": moment_rtol, "exp_avg_sq": moment_rtol, "step": 0}
+    too_far = {k: v for k, v in found.items() if not v <= limits[k.split("/")[1]]}
+    assert not too_far, f"beyond tolerance: {too_far} (all gaps: {found})"
+
+
+def differing(found: dict) -> set[str]:
+    return {k for k, v in found.items() if v > CLEARLY_DIFFERENT}
+
+
+# --- off-policy: one batch, SB3's noise recorded and handed to walkers ----------------------------
+def make_batch(seed: int) -> dict[str, torch.Tensor]:
+    g = torch.Generator().manual_seed(seed)
+    return {
+        "obs": torch.randn(BATCH, OBS_DIM, generator=g),
+        "action": torch.rand(BATCH, ACT_DIM, generator=g) * 2 - 1,
+        "reward": torch.randn(BATCH, generator=g),
+        "next_obs": torch.randn(BATCH, OBS_DIM, generator=g),
+        "terminated": (torch.arange(BATCH) % 5 == 0).float(),
+    }
+
+
+def fill_buffer(agent, b: dict) -> None:
+    """Observe the batch's transitions, so the agent has a batch to learn from (``update`` waits
+    for ``batch_size`` transitions); which ones it learns from is ``agent.sample``'s."""
+    for i in range(BATCH):
+        agent.observe(
+            Transition(
+                b["obs"][i].numpy(),
+                b["action"][i].numpy(),
+                float(b["reward"][i]),
+                b["next_obs"][i].numpy(),
+                bool(b["terminated"][i]),
+                False,
+            )
+        )
+
+
+def sb3_update(model, b: dict, monkeypatch, draw_source: tuple, reward_shift: float = 0.0):
+    """SB3's ``train(1)`` on batch ``b``; returns the random numbers it drew (its own)."""
+    samples = ReplayBufferSamples(
+        b["obs"],
+        b["action"],
+        b["next_obs"],
+        b["terminated"][:, None],
+        b["reward"][:, None] + reward_shift,
+    )
+    model.replay_buffer.sample = lambda batch_size, env=None: samples
+    drawn = []
+    owner, name = draw_source
+    original = getattr(owner, name)
+
+    def recorded(*args, **kwargs):
+        out = original(*args, **kwargs)
+        drawn.append(out.detach().clone())
+        return out
+
+    with monkeypatch.context() as m:
+        m.setattr(owner, name, recorded)
+        model.train(gradient_steps=1, batch_size=BATCH)
+    return drawn
+
+
+def walkers_update(agent, b: dict, critic_noise, actor_noise) -> None:
+    batch = Batch(*(b[k][None] for k in ("obs", "action", "reward", "next_obs", "terminated")))
+    agent.sample = lambda: batch
+    agent.update_noise = lambda _batch: (critic_noise, actor_noise)
+    assert agent.update(), "walkers did not update"
+
+
+TD3_DRAWS = (torch.Tensor, "normal_")  # noise = actions.clone().data.normal_(0, policy_noise)
+SAC_DRAWS = (torch.distributions.normal, "_standard_normal")  # in Normal.rsample
+
+
+def td3_noise(agent, drawn):
+    """SB3 drew eps * policy_noise directly; walkers takes eps (policy_noise is 1/4, so the
+    division and walkers' multiplication are exact)."""
+    if agent.policy_noise == 0:  # DDPG: SB3 still draws normal_(0, 0); walkers draws nothing
+        return None, None
+    (noise,) = drawn
+    return (noise / agent.policy_noise)[None], None
+
+
+def sac_noise(agent, drawn):
+    """SB3 draws eps for a ~ pi(.|s) first, then for a' ~ pi(.|s'); walkers' update_noise
+    returns (critic's a', actor's a)."""
+    actor_eps, next_eps = drawn
+    return next_eps[None], actor_eps[None]
+
+
+def run_off_policy(
+    agent, model, pairs, updates, monkeypatch, reward_shift=0.0, loss_scale=None
+) -> list[dict]:
+    """``updates`` updates on both sides, each on a new batch (SB3's first batch with its rewards
+    shifted by ``reward_shift``); the gaps after each."""
+    draws, noise_of = (SAC_DRAWS, sac_noise) if isinstance(agent, SAC) else (TD3_DRAWS, td3_noise)
+    history = []
+    for k in range(updates):
+        b = make_batch(100 + k)
+        if k == 0:
+            fill_buffer(agent, b)
+        drawn = sb3_update(model, b, monkeypatch, draws, reward_shift if k == 0 else 0.0)
+        walkers_update(agent, b, *noise_of(agent, drawn))
+        history.append(gaps(pairs, agent, model, loss_scale))
+    return history
+
+
+# --- TD3 ----------------------------------------------------------------------------------------
+TD3_HP = {"policy_noise": 0.25, "noise_clip": 0.5, "policy_delay": 2}
+
+
+def td3_pair():
+    agent, model = off_policy(TD3, "td3", **TD3_HP)
+    pairs = deterministic_pairs(agent, model)
+    load_sb3_weights_into_walkers(pairs, model)
+    return agent, model, pairs
+
+
+def test_td3_critic_and_actor_updates_match_sb3(monkeypatch):
+    agent, model, pairs = td3_pair()
+    first, second, third, fourth = run_off_policy(agent, model, pairs, 4, monkeypatch)
+    # update 1: the critics only (policy_delay 2): no actor step, the targets unmoved, on both sides
+    assert "actor/exp_avg" not in first and first["actor/weights"] == 0.0
+    assert first["critic_target/weights"] == 0.0 and first["actor_target/weights"] == 0.0
+    assert_agree(first)
+    # update 2: critics, actor and both targets; 3 and 4 the same again, from the moved weights
+    assert "actor/exp_avg" in second
+    for found in (second, third, fourth):
+        assert_agree(found)
+
+
+def test_td3_parity_is_not_vacuous(monkeypatch):
+    agent, model, pairs = td3_pair()
+    *_, last = run_off_policy(agent, model, pairs, 2, monkeypatch, reward_shift=1.0)
+    assert {"critic/weights", "critic/exp_avg", "actor/exp_avg"} <= differing(last)
+
+
+# --- DDPG ---------------------------------------------------------------------------------------
+def ddpg_pair():
+    agent, model = off_policy(DDPG, "ddpg")
+    pairs = deterministic_pairs(agent, model)
+    load_sb3_weights_into_walkers(pairs, model)
+    return agent, model, pairs
+
+
+def test_ddpg_updates_match_sb3(monkeypatch):
+    agent, model, pairs = ddpg_pair()
+    assert len(model.critic.q_networks) == 1 and agent.critic.out.weight.shape[0] == 1
+    for found in run_off_policy(agent, model, pairs, 2, monkeypatch):
+        assert "actor/exp_avg" in found  # an actor step at every update
+        assert_agree(found)
+
+
+def test_ddpg_parity_is_not_vacuous(monkeypatch):
+    agent, model, pairs = ddpg_pair()
+    (found,) = run_off_policy(agent, model, pairs, 1, monkeypatch, reward_shift=1.0)
+    assert {"critic/weights", "critic/exp_avg", "actor/exp_avg"} <= differing(found)
+
+
+# --- SAC ---------------------------------------------------------------------------------------
+#: SB3: critic_loss = 0.5 * sum MSE (sac.py, SAC.train); walkers: sum MSE (ActorCritic.critic_loss)
+SAC_LOSS_SCALE = {"critic": 2.0}
+
+
+def sac_pair(log_epsilon: float | None = None, critic_adam_eps: float | None = None):
+    """``log_epsilon``: SB3's epsilon in log(1 - tanh(u)^2 + epsilon) (None: SB3's 1e-6);
+    ``critic_adam_eps``: SB3's critic Adam eps (None: 1e-8, as walkers')."""
+    agent, model = off_policy(SAC, "sac", alpha_init=0.5)
+    if log_epsilon is not None:
+        model.actor.action_dist.epsilon = log_epsilon
+    for group in model.critic.optimizer.param_groups if critic_adam_eps is not None else []:
+        group["eps"] = critic_adam_eps
+    pairs = sac_pairs(agent, model)
+    load_sb3_weights_into_walkers(pairs, model)
+    return agent, model, pairs
+
+
+def sac_updates(monkeypatch, updates=3, reward_shift=0.0, **sb3_changes) -> list[dict]:
+    agent, model, pairs = sac_pair(**sb3_changes)
+    history = run_off_policy(
+        agent, model, pairs, updates, monkeypatch, reward_shift, SAC_LOSS_SCALE
+    )
+    assert all(
+        {"actor/exp_avg", "critic/exp_avg", "temperature/exp_avg"} <= set(h) for h in history
+    )
+    return history
+
+
+def test_sac_critic_actor_and_temperature_updates_match_sb3(monkeypatch):
+    """SB3 as shipped: weights, targets and alpha agree to SAC_WEIGHT_ATOL, moments (the critics'
+    x2 / x4) to SAC_MOMENT_RTOL; the two causes are isolated by the next test."""
+    for found in sac_updates(monkeypatch):
+        assert_agree(found, SAC_WEIGHT_ATOL, SAC_MOMENT_RTOL)
+        # alpha itself is equal: SB3 steps the temperature before the critics, walkers after the
+        # actor, but both use the alpha from before the update in the critic target and actor loss
+        assert found["temperature/weights"] <= WEIGHT_ATOL
+
+
+def test_sac_differs_from_sb3_only_by_the_critic_loss_half_and_the_log_epsilon(monkeypatch):
+    """The two differences of SAC, each undone on SB3's side (not walkers'):
+
+    - SB3's critic loss is half walkers': its gradient is half, so with Adam's eps halved too SB3's
+      step is walkers' step (m/2 / (sqrt(v)/2 + eps/2) = m / (sqrt(v) + eps));
+    - SB3's log pi subtracts log(1 - tanh(u)^2 + 1e-6) (distributions.py,
+      SquashedDiagGaussianDistribution.log_prob), walkers' the exact log(1 - tanh(u)^2).
+
+    With both undone, SAC agrees as closely as the other twins; with either left, it does not."""
+    for found in sac_updates(monkeypatch, log_epsilon=0.0, critic_adam_eps=0.5e-8):
+        assert_agree(found)
+    only_loss_half = sac_updates(monkeypatch, updates=1, log_epsilon=0.0)[0]
+    assert only_loss_half["critic/weights"] > WEIGHT_ATOL
+    assert_agree({k: v for k, v in only_loss_half.items() if not k.startswith("critic/")})
+    only_epsilon = sac_updates(monkeypatch, updates=1, critic_adam_eps=0.5e-8)[0]
+    assert only_epsilon["actor/exp_avg"] > MOMENT_RTOL
+
+
+def test_sac_parity_is_not_vacuous(monkeypatch):
+    (found,) = sac_updates(monkeypatch, updates=1, reward_shift=1.0)
+    assert {"critic/weights", "critic/exp_avg", "actor/exp_avg"} <= differing(found)
+
+
+# --- PPO: one rollout, walkers' minibatch order given to SB3 -------------------------------------
+STEPS, MINIBATCHES, EPOCHS = 64, 4, 3
+TERMINATED_AT, TRUNCATED_AT = 20, 45  # one episode ends in a terminal state, one at a time limit
+
+
+def ppo_pair(**overrides):
+    hp = {
+        "n_steps": STEPS,
+        "n_minibatches": MINIBATCHES,
+        "n_epochs": EPOCHS,
+        "lr": 1e-3,
+        "anneal_lr": False,
+        "ent_coef": 0.01,
+        "normalize_obs": False,
+        "normalize_reward": False,
+    }
+    agent, model = build(PPO, "ppo", **hp | overrides)
+    pairs = ppo_pairs(agent, model)
+    load_sb3_weights_into_walkers(pairs, model)
+    return agent, model, pairs
+
+
+def make_rollout(seed: int = 7) -> dict[str, torch.Tensor]:
+    """Steps s_t, a_t (unclipped Gaussian samples), r_t, s'_t; s'_t = s_{t+1} inside an episode."""
+    g = torch.Generator().manual_seed(seed)
+    obs = torch.randn(STEPS + 1, OBS_DIM, generator=g)
+    r = {
+        "obs": obs[:-1],
+        "next_obs": obs[1:].clone(),
+        "action": 0.7 * torch.randn(STEPS, ACT_DIM, generator=g),
+        "reward": 2 * torch.randn(STEPS, generator=g),
+        "terminated": torch.zeros(STEPS),
+        "episode_end": torch.zeros(STEPS, dtype=torch.bool),
+    }
+    for t in (TERMINATED_AT, TRUNCATED_AT):  # s' is the episode's last obs, not the next's first
+        r["next_obs"][t] = torch.randn(OBS_DIM, generator=g)
+        r["episode_end"][t] = True
+    r["terminated"][TERMINATED_AT] = 1.0
+    return r
+
+
+def fill_walkers_rollout(agent, r: dict) -> None:
+    for t in range(STEPS):
+        agent.rollout.add(
+            bool(r["episode_end"][t]),
+            obs=r["obs"][t].numpy(),
+            action=r["action"][t].numpy(),
+            reward=float(r["reward"][t]),
+            terminated=float(r["terminated"][t]),
+            next_obs=r["next_obs"][t].numpy(),
+        )
+
+
+@torch.no_grad()
+def fill_sb3_rollout(model, r: dict, reward_shift: float = 0.0) -> None:
+    """What SB3's collect_rollouts stores for these steps: values and log-probs of its policy, a
+    time-limit truncation's reward plus gamma V(s') (on_policy_algorithm.py, "Handle timeout by
+    bootstrapping"), episode starts, then the GAE from V of the last s'. ``reward_shift`` is
+    added to the first reward."""
+    buffer, policy = model.rollout_buffer, model.policy
+    buffer.reset()
+    values, log_probs, _ = policy.evaluate_actions(r["obs"], r["action"])
+    next_values = policy.predict_values(r["next_obs"])
+    rewards = r["reward"].numpy().copy()
+    rewards[0] += reward_shift
+    starts = np.r_[True, r["episode_end"][:-1].numpy()]
+    for t in range(STEPS):
+        if r["episode_end"][t] and not r["terminated"][t]:
+            rewards[t] += model.gamma * next_values[t].item()
+        buffer.add(
+            r["obs"][t][None].numpy(),
+            r["action"][t][None].numpy(),
+            rewards[t : t + 1],
+            starts[t : t + 1],
+            values[t : t + 1],
+            log_probs[t : t + 1],
+        )
+    buffer.compute_returns_and_advantage(next_values[-1:], dones=np.array([False]))
+
+
+def run_ppo(agent, model, pairs, monkeypatch, reward_shift: float = 0.0) -> dict:
+    """One update on both sides from the same rollout, SB3's minibatches in walkers' order."""
+    r = make_rollout()
+    fill_walkers_rollout(agent, r)
+    fill_sb3_rollout(model, r, reward_shift)
+    g = torch.Generator()
+    g.set_state(agent.minibatch_generator.get_state())
+    orders = [torch.randperm(STEPS, generator=g).numpy() for _ in range(EPOCHS)]
+
+    def walkers_order(n: int) -> np.ndarray:  # RolloutBuffer.get's np.random.permutation
+        assert n == STEPS
+        return orders.pop(0)
+
+    with monkeypatch.context() as m:
+        m.setattr(np.random, "permutation", walkers_order)
+        model.train()
+    assert not orders, "SB3 ran fewer epochs than walkers will"
+    assert agent.update(), "walkers did not update"
+    return gaps(pairs, agent, model)
+
+
+def test_ppo_update_without_value_clipping_matches_sb3(monkeypatch):
+    """n_epochs x n_minibatches steps, the gradient norm clipped (max_grad_norm 0.5), advantages
+    normalized per minibatch, an entropy bonus; SB3 with clip_range_vf=None."""
+    agent, model, pairs = ppo_pair(clip_value_loss=False)
+    assert model.clip_range_vf is None and model.vf_coef == agent.vf_coef / 2
+    found = run_ppo(agent, model, pairs, monkeypatch)
+    assert agent.optimizer.state[agent.policy.log_std]["step"] == EPOCHS * MINIBATCHES
+    assert_agree(found)
+
+
+def sb3_value_loss(values, old_values, returns, clip_coef):
+    """SB3's value loss in walkers' terms: 1/2 (R - V_pred)^2, V_pred = V clipped to within
+    clip_coef of V_old (ppo.py, PPO.train), instead of walkers' max of clipped and unclipped."""
+    if clip_coef is not None:
+        values = old_values + (values - old_values).clamp(-clip_coef, clip_coef)
+    return 0.5 * (values - returns).pow(2)
+
+
+def test_ppo_value_clipping_is_the_one_difference(monkeypatch):
+    """clip_value_loss=true (SB3: clip_range_vf=clip_coef). Walkers clips as ppo2 (max of the
+    clipped and unclipped errors, walkers.agents.ppo.value_loss), SB3 clips V itself. With the
+    gradient norm unclipped (it would couple the policy's step to the value's gradient):
+    the policy, its moments included, agrees; the value net differs; and with SB3's form put in
+    place of walkers' value_loss, everything agrees again."""
+    hp = {"clip_value_loss": True, "max_grad_norm": None}
+    agent, model, pairs = ppo_pair(**hp)
+    found = run_ppo(agent, model, pairs, monkeypatch)
+    assert_agree({k: v for k, v in found.items() if k.startswith("policy/")})
+    assert {"value/weights", "value/exp_avg", "value/exp_avg_sq"} <= differing(found)
+
+    agent, model, pairs = ppo_pair(**hp)
+    monkeypatch.setattr("walkers.agents.ppo.value_loss", sb3_value_loss)
+    assert_agree(run_ppo(agent, model, pairs, monkeypatch))
+
+
+def test_ppo_parity_is_not_vacuous(monkeypatch):
+    agent, model, pairs = ppo_pair(clip_value_loss=False)
+    found = run_ppo(agent, model, pairs, monkeypatch, reward_shift=1.0)
+    assert {"policy/weights", "policy/exp_avg", "value/weights", "value/exp_avg"} <= differing(
+        found
+    )

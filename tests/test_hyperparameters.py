@@ -1,6 +1,7 @@
 """Each hyperparameter declared once (walkers/agents/schemas.py): the yaml menus are written from
 the declarations, the config check is derived from them, and the agents' constructors carry no
-defaults of their own."""
+defaults of their own. The run's own settings likewise (walkers/training/settings.py): the block
+of conf/train.yaml is written from them and the config check derived."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ from dataclasses import fields
 
 import pytest
 from hydra.utils import get_class
+from omegaconf import OmegaConf
 
 from tests.conftest import compose_cfg
 from walkers import PROJECT_ROOT
@@ -21,15 +23,19 @@ from walkers.agents.menus import menu, write_menus
 from walkers.agents.schemas import SCHEMAS
 from walkers.agents.td3 import TD3
 from walkers.errors import ConfigError
+from walkers.training.settings import RunSettings, train_yaml, write_train_yaml
 from walkers.training.validate import validate
 
 DECLARED = [(name, f.name) for name, schema in SCHEMAS.items() for f in fields(schema)]
+SETTINGS = {f.name: f for f in fields(RunSettings)}
 
 
-def test_the_menus_are_written_from_the_declarations():
+@pytest.mark.parametrize("module", ["walkers.agents.menus", "walkers.training.settings"])
+def test_the_menus_are_written_from_the_declarations(module):
     assert write_menus(check=True) == []
+    assert write_train_yaml(check=True) == []
     result = subprocess.run(
-        [sys.executable, "-m", "walkers.agents.menus", "--check"],
+        [sys.executable, "-m", module, "--check"],
         cwd=PROJECT_ROOT,
         capture_output=True,
         text=True,
@@ -46,6 +52,46 @@ def test_a_menu_edited_by_hand_is_found_and_rewritten(tmp_path):
     assert write_menus(tmp_path) == [str(td3)]
     assert write_menus(tmp_path, check=True) == []
     assert td3.read_text() == menu(SCHEMAS["td3"])
+
+
+def test_a_run_setting_edited_by_hand_is_found_and_rewritten(tmp_path):
+    train = tmp_path / "train.yaml"
+    shutil.copy(PROJECT_ROOT / "conf" / "train.yaml", train)
+    declared = train.read_text()
+    train.write_text(declared.replace("\neval_episodes: 10 ", "\neval_episodes: 5 "))
+    assert write_train_yaml(tmp_path, check=True) == [str(train)]
+    assert "eval_episodes: 5" in train.read_text()  # a check writes nothing
+    assert write_train_yaml(tmp_path) == [str(train)]
+    assert train.read_text() == declared == train_yaml(declared)
+    with pytest.raises(ValueError, match="no line"):  # the block's heading is kept by hand
+        train_yaml(declared.replace("# The run's own settings", "# settings"))
+
+
+def test_the_composed_run_settings_are_the_declared_ones():
+    """The top level of conf/train.yaml holds each declared setting with its declared default
+    (as written: work_dir reads an environment variable); an algorithm's menu that sets run
+    settings (dt's gradient-step budget) or follows one (ppo's schedule) names declared ones."""
+    cfg = OmegaConf.to_container(compose_cfg([]), resolve=False)
+    default = RunSettings()
+    for key in SETTINGS:
+        assert cfg[key] == getattr(default, key), key
+    assert RunSettings.of(compose_cfg(["seed=7"])).seed == 7
+    for schema in SCHEMAS.values():
+        for key, (value, _) in schema.RUN_SETTINGS.items():
+            allowed = SETTINGS[key].metadata["allowed"]
+            assert allowed is None or allowed.ok(value), (schema.NAME, key)
+        assert {f.metadata["follows"] for f in fields(schema)} - {""} <= set(SETTINGS)
+
+
+@pytest.mark.parametrize("key", [k for k, f in SETTINGS.items() if f.metadata["allowed"]])
+def test_every_checked_run_setting_is_checked_in_one_line(key):
+    cfg = compose_cfg(["env=pendulum", "total_steps=1000", "eval_every=500"])
+    cfg[key] = "bad"
+    with pytest.raises(ConfigError) as error:
+        validate(cfg)
+    assert str(error.value) == (
+        f"{key}='bad' is not allowed: must be {SETTINGS[key].metadata['allowed'].text}"
+    )
 
 
 @pytest.mark.parametrize("name", list(SCHEMAS))

@@ -34,6 +34,7 @@ from walkers.training.evaluation import Evaluation, greedy_evaluation
 from walkers.training.provenance import DIVERGED_TAG
 from walkers.training.rollout import record_episodes
 from walkers.training.run import ENV_STEP_AXIS, Axis, TrainingRun
+from walkers.training.settings import RunSettings
 from walkers.training.video import write_gif
 
 log = logging.getLogger("walkers")
@@ -44,24 +45,6 @@ TRAINING_GIF_FRAMES = 500
 
 class TrainingDiverged(RuntimeError):
     """Every update for ``divergence_patience`` updates in a row had a NaN/inf loss."""
-
-
-@dataclass
-class RunSettings:
-    """What a run's book takes from its config: the budget, the schedules of evaluations,
-    checkpoints, logs and videos, the seed, the threshold, the divergence patience."""
-
-    total_steps: int
-    eval_every: int
-    eval_episodes: int
-    checkpoint_every: int
-    log_every: int
-    seed: int
-    threshold: float
-    save_buffer: bool = False
-    progress: bool = True
-    video_every: int = 0  # env steps between gifs of the greedy policy; 0: never
-    divergence_patience: int = 100  # skipped (NaN/inf) updates in a row that end the run FAILED
 
 
 @dataclass
@@ -76,7 +59,9 @@ class Progress:
 
 
 class RunBook:
-    """The bookkeeping of one run (see the module docstring)."""
+    """The bookkeeping of one run (see the module docstring): its ``settings`` say the budget,
+    the schedules of evaluations, checkpoints, logs and videos, the seed and the divergence
+    patience; ``threshold`` is the env's return for ``final/steps_to_threshold``."""
 
     def __init__(
         self,
@@ -85,6 +70,7 @@ class RunBook:
         eval_env: gym.Env,
         run: TrainingRun,
         settings: RunSettings,
+        threshold: float,
         checkpoint_extra: dict | None = None,
         video_env: gym.Env | None = None,
         on_evaluation: Callable[[int, float], bool] | None = None,
@@ -93,7 +79,7 @@ class RunBook:
         summarize: Callable[[dict[str, float]], dict[str, float]] | None = None,
     ):
         self.agent, self.env, self.eval_env, self.video_env = agent, env, eval_env, video_env
-        self.run, self.settings, self.axis = run, settings, axis
+        self.run, self.settings, self.threshold, self.axis = run, settings, threshold, axis
         self.checkpoint_extra = checkpoint_extra or {}  # e.g. the composed config
         # called with (step, eval mean) after each evaluation; True stops training (a pruned trial)
         self.on_evaluation = on_evaluation
@@ -253,7 +239,7 @@ class RunBook:
     def finish(self, rate: float | None, extra: dict[str, float] | None = None) -> dict:
         """Log the ``final/*`` summary (with ``rate`` and ``extra``), write last.pt, flush."""
         p = self.progress
-        summary = self.summarize(run_summary(p.eval_steps, p.eval_means, self.settings.threshold))
+        summary = self.summarize(run_summary(p.eval_steps, p.eval_means, self.threshold))
         summary |= extra or {}
         if rate is not None:
             summary[self.axis.rate_metric] = rate

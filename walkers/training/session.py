@@ -21,12 +21,13 @@ from walkers.agents.factory import build_agent
 from walkers.agents.sb3_twin import SB3Twin
 from walkers.errors import ConfigError
 from walkers.training import resume
-from walkers.training.bookkeeping import RunBook, RunSettings
+from walkers.training.bookkeeping import RunBook
 from walkers.training.envs import env_spaces, make_env
 from walkers.training.evaluation import per_target_return, with_normalized_score
 from walkers.training.loops import train_offline, train_online, train_population, train_sb3
 from walkers.training.provenance import MEMBER_TAG, POPULATION_TAG, shareable
 from walkers.training.run import ENV_STEP_AXIS, GRADIENT_STEP_AXIS, TrainingRun, ending
+from walkers.training.settings import RunSettings
 from walkers.training.validate import check_environment, is_offline, validate
 from walkers.tuning.trial import TrialReporter
 
@@ -157,7 +158,8 @@ def _book(cfg: DictConfig, run, agent, env, eval_env, axis=ENV_STEP_AXIS, video_
         env,
         eval_env,
         run,
-        run_settings(cfg),
+        RunSettings.of(cfg),
+        cfg.env.threshold,
         checkpoint_extra={"config": shareable(cfg)},
         video_env=video_env,
         axis=axis,
@@ -173,22 +175,6 @@ def member_config(cfg: DictConfig, i: int) -> DictConfig:
     if cfg.tracking.run_name:
         member.tracking.run_name = f"{cfg.tracking.run_name}-m{i}"
     return member
-
-
-def run_settings(cfg: DictConfig) -> RunSettings:
-    return RunSettings(
-        total_steps=cfg.total_steps,
-        eval_every=cfg.eval_every,
-        eval_episodes=cfg.eval_episodes,
-        checkpoint_every=cfg.checkpoint_every,
-        log_every=cfg.log_every,
-        seed=cfg.seed,
-        threshold=cfg.env.threshold,
-        save_buffer=cfg.save_buffer,
-        progress=cfg.progress,
-        video_every=cfg.video_every,
-        divergence_patience=cfg.divergence_patience,
-    )
 
 
 def load_dataset(cfg: DictConfig):

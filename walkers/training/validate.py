@@ -1,9 +1,9 @@
 """Check a composed config before any work starts (and before an MLflow run exists).
 
-The run's settings are checked by :data:`RULES` (a dotted key and what is allowed), the
-algorithm's hyperparameters against their one declaration (:mod:`walkers.agents.schemas`), then
-what needs several keys at once. Every error is one line naming the key, the value and what is
-allowed.
+The run's settings and the env's are checked by :data:`RULES` (a dotted key and what is allowed;
+the run's as declared in :mod:`walkers.training.settings`), the algorithm's hyperparameters
+against their one declaration (:mod:`walkers.agents.schemas`), then what needs several keys at
+once. Every error is one line naming the key, the value and what is allowed.
 """
 
 from __future__ import annotations
@@ -25,34 +25,13 @@ from walkers.agents.sb3_arguments import NotExpressible, sb3_arguments
 from walkers.agents.sb3_twin import import_sb3
 from walkers.agents.schemas import schema_of
 from walkers.errors import ConfigError
-from walkers.metrics import METRIC_DIRECTIONS
+from walkers.training import settings
 from walkers.training.provenance import worker_name
 
-OPTIMIZABLE_METRICS = tuple(METRIC_DIRECTIONS)  # every metric a sweep can optimize
-DEVICES = ("auto", "cpu", "cuda")
-IMPLEMENTATIONS = ("walkers", "sb3")
-
-
-def _listed(choices) -> Allowed:
-    return Allowed(lambda v: v in choices, "one of " + ", ".join(choices))
-
-
-#: The run's own settings (``conf/train.yaml``) and the env's; an algorithm's hyperparameters
-#: are checked against their declarations (:mod:`walkers.agents.schemas`).
+#: The run's own settings as declared (:mod:`walkers.training.settings`), then the env's; an
+#: algorithm's hyperparameters are checked against theirs (:mod:`walkers.agents.schemas`).
 RULES: list[tuple[str, Allowed]] = [
-    ("seed", NON_NEGATIVE_INT),
-    ("total_steps", POSITIVE_INT),
-    ("eval_every", POSITIVE_INT),
-    ("eval_episodes", POSITIVE_INT),
-    ("checkpoint_every", POSITIVE_INT),
-    ("log_every", POSITIVE_INT),
-    ("video_every", Allowed(NON_NEGATIVE_INT.ok, "an integer >= 0 (0: no videos)")),
-    ("divergence_patience", POSITIVE_INT),
-    ("population", POSITIVE_INT),
-    ("torch_threads", or_null(POSITIVE_INT)),
-    ("device", _listed(DEVICES)),
-    ("impl", _listed(IMPLEMENTATIONS)),
-    ("optimized_metric", _listed(OPTIMIZABLE_METRICS)),
+    *settings.RULES,
     ("env.max_episode_steps", or_null(POSITIVE_INT)),
     ("env.threshold", NUMBER),
     ("env.learning_starts", NON_NEGATIVE_INT),

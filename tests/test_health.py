@@ -1,6 +1,8 @@
 """The NaN/inf guard: a finite loss with a non-finite gradient is skipped like a NaN loss, an
-actor skipped again and again counts toward ``divergence_patience``, and a checkpoint keeps
-every torch generator the updates draw from (the CUDA ones when a run trains on CUDA)."""
+actor skipped again and again counts toward ``divergence_patience``, PPO, the Decision
+Transformer and REINFORCE (its baseline too) skip a non-finite update through the same guard and
+step normally after it, and a checkpoint keeps every torch generator the updates draw from (the
+CUDA ones when a run trains on CUDA)."""
 
 from __future__ import annotations
 
@@ -11,8 +13,13 @@ import torch
 
 from tests.conftest import TINY, compose_cfg
 from walkers.agents.base import Transition
-from walkers.agents.factory import build_agent
-from walkers.agents.health import SKIPPED, SKIPPED_IN_A_ROW, guarded_step
+from walkers.agents.dt import DecisionTransformer
+from walkers.agents.factory import build_agent, defaults_for
+from walkers.agents.health import SKIPPED, SKIPPED_IN_A_ROW, guarded_agent_step, guarded_step
+from walkers.agents.ppo import PPO
+from walkers.agents.reinforce import Reinforce
+from walkers.data.datasets import OfflineData
+from walkers.data.episodes import Episode
 from walkers.seeding import restore_torch_rng, torch_rng_state
 from walkers.train import train
 from walkers.training import checkpoints
@@ -39,6 +46,22 @@ def test_a_single_agent_with_an_infinite_gradient_takes_no_step():
     bad = guarded_step(optimizer, w.squeeze(-1).sqrt(), copies=1)
     assert bad.tolist() == [1.0] and w.item() == 0.0
     assert all(torch.isfinite(s).all() for s in optimizer.state[w].values())  # moments clean
+
+
+def test_an_agent_step_clips_like_clip_grad_norm_and_returns_the_norm_before():
+    w = torch.nn.Parameter(torch.tensor([3.0, 4.0]))
+    optimizer = torch.optim.SGD([w], lr=1.0, fused=True)
+    step = guarded_agent_step(optimizer, (w * w).sum() / 2, max_grad_norm=1.0)  # gradient w
+    assert step.skipped.item() == 0.0 and step.grad_norm.item() == 5.0
+    assert torch.allclose(w, torch.tensor([3.0 - 0.6, 4.0 - 0.8]))  # a step of norm 1
+
+
+def test_a_skipped_agent_step_still_advances_its_learning_rate_schedule():
+    w, optimizer = _sqrt_members([0.0])
+    schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: step + 1)
+    step = guarded_agent_step(optimizer, w.sum().sqrt(), max_grad_norm=1.0, scheduler=schedule)
+    assert step.skipped.item() == 1.0 and w.item() == 0.0
+    assert schedule.last_epoch == 1 and optimizer.param_groups[0]["lr"] == 0.2
 
 
 def _td3_with_a_broken_actor(patience_updates: int = 12):
@@ -77,6 +100,124 @@ def test_an_actor_skipped_again_and_again_counts_toward_divergence():
     agent.guard.load_state_dict({k: [0.0] for k in restored})
     agent.guard.load_state_dict(restored)  # the delayed step's verdict survives a checkpoint
     assert agent.update()[SKIPPED_IN_A_ROW].item() == len(metrics)
+
+
+# --- PPO, DT and REINFORCE: a real update fed a NaN is skipped, the next one steps -------------
+NAN = float("nan")
+
+
+def _weights(optimizer: torch.optim.Optimizer) -> list[torch.Tensor]:
+    return [p.detach().clone() for group in optimizer.param_groups for p in group["params"]]
+
+
+def _learning_state(optimizer: torch.optim.Optimizer) -> list[torch.Tensor]:
+    """Copies of the weights ``optimizer`` steps and of its Adam moments and step counts."""
+    moments = [v.clone() for state in optimizer.state.values() for v in state.values()]
+    return _weights(optimizer) + moments
+
+
+def _same(before: list[torch.Tensor], after: list[torch.Tensor]) -> bool:
+    return len(before) == len(after) and all(map(torch.equal, before, after))
+
+
+def _skips_the_nan_update_then_steps(optimizers: list, update) -> None:
+    """``update(NAN)`` after a finite ``update(None)``: the weights and Adam state of every one
+    of ``optimizers`` untouched, the update counted in ``health/*``; the finite update after it
+    steps every optimizer and ends the run of skips."""
+    update(None)  # Adam's moments exist from here on
+    before = [_learning_state(o) for o in optimizers]
+    weights_before = [_weights(o) for o in optimizers]
+    metrics = update(NAN)
+    skipped = metrics[SKIPPED].item()
+    assert skipped >= 1 and metrics[SKIPPED_IN_A_ROW].item() == skipped
+    assert all(_same(b, _learning_state(o)) for b, o in zip(before, optimizers, strict=True))
+    metrics = update(None)
+    assert metrics[SKIPPED].item() == skipped and metrics[SKIPPED_IN_A_ROW].item() == 0
+    for optimizer, old in zip(optimizers, weights_before, strict=True):
+        weights = _weights(optimizer)
+        assert all(torch.isfinite(w).all() for w in weights) and not _same(old, weights)
+
+
+def _online_updates(agent, steps: int = 20):
+    """``update(reward)``: Pendulum steps (every reward ``reward``, or the env's when None), from
+    where the last call stopped, until ``agent`` updates; its metrics."""
+    env = make_env({"id": "Pendulum-v1", "max_episode_steps": steps})
+    obs = [env.reset(seed=0)[0]]
+
+    def update(reward: float | None) -> dict:
+        while True:
+            action = agent.act(obs[0], explore=True)
+            next_obs, env_reward, term, trunc, _ = env.step(action)
+            seen = env_reward if reward is None else reward
+            agent.observe(Transition(obs[0], action, float(seen), next_obs, term, trunc))
+            obs[0] = next_obs if not (term or trunc) else env.reset()[0]
+            if metrics := agent.update():
+                return metrics
+
+    return update
+
+
+def test_ppo_skips_every_minibatch_step_of_a_nan_rollout_and_learns_after_it():
+    small = defaults_for(
+        PPO, n_steps=16, n_minibatches=2, n_epochs=1, hidden_sizes=[8], normalize_reward=False
+    )
+    agent = PPO(3, [-2.0], [2.0], **small)
+    _skips_the_nan_update_then_steps([agent.optimizer], _online_updates(agent))
+    assert agent.guard.skipped.item() == 2  # both minibatch steps of the NaN rollout
+
+
+def test_reinforce_skips_a_nan_update_of_its_policy_and_its_baseline():
+    small = defaults_for(Reinforce, episodes_per_update=1, hidden_sizes=[8], baseline=True)
+    agent = Reinforce(3, [-2.0], [2.0], **small)
+    optimizers = [agent.optimizer, agent.value_optimizer]
+    _skips_the_nan_update_then_steps(optimizers, _online_updates(agent))
+    assert agent.guard.skipped.item() == 1  # one update, counted once for its two steps
+
+
+def _tiny_dataset() -> OfflineData:
+    rng = np.random.default_rng(0)
+    steps = 12
+    episodes = [
+        Episode(
+            rng.normal(size=(steps + 1, 3)).astype(np.float32),
+            rng.uniform(-2, 2, size=(steps, 1)).astype(np.float32),
+            rng.normal(size=steps).astype(np.float32),
+            np.zeros(steps, bool),
+            np.arange(steps) == steps - 1,
+        )
+        for _ in range(3)
+    ]
+    return OfflineData("tiny", "Pendulum-v1", episodes, None, None)
+
+
+def test_a_decision_transformer_skips_a_nan_batch_and_learns_after_it():
+    small = defaults_for(
+        DecisionTransformer,
+        context_length=4,
+        embed_dim=8,
+        n_layers=1,
+        dropout=0.0,
+        batch_size=4,
+        warmup_steps=10,
+        max_episode_steps=50,
+    )
+    agent = DecisionTransformer(3, [-2.0], [2.0], dataset=_tiny_dataset(), **small)
+    sample = agent.sampler.sample
+
+    def update(poison: float | None) -> dict:
+        """One update; with ``poison``, on a batch whose returns-to-go are multiplied by it."""
+        if poison is not None:
+            batch = sample(small["batch_size"])
+            agent.sampler.sample = lambda n: batch._replace(
+                returns_to_go=batch.returns_to_go * poison
+            )
+        try:
+            return agent.update()
+        finally:
+            agent.sampler.sample = sample
+
+    _skips_the_nan_update_then_steps([agent.optimizer], update)
+    assert agent.scheduler.last_epoch == 3  # the warm-up counts the skipped update too
 
 
 def test_a_checkpoint_keeps_the_cpu_generator_and_a_slot_for_cuda(store):

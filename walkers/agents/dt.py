@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from walkers.agents.base import Agent, Transition, resolve_device
-from walkers.agents.health import NonFiniteGuard
+from walkers.agents.health import NonFiniteGuard, guarded_agent_step
 from walkers.agents.transformer import DecisionTransformerModel
 from walkers.data.sequences import SequenceSampler
 from walkers.seeding import stream_seeds
@@ -158,19 +158,14 @@ class DecisionTransformer(Agent):
         predicted = self.model(b.returns_to_go, b.obs, b.actions, b.timesteps)
         squared_error = (predicted - b.actions).pow(2).mean(dim=-1)
         loss = (squared_error * b.mask).sum() / b.mask.sum()
-        self.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        grad_norm = torch.nn.utils.clip_grad_norm_(self.model.parameters(), self.grad_clip)
-        # NaN/inf guard without a host sync: fused AdamW skips its step when found_inf is 1.
-        bad = self.guard.is_bad(loss, grad_norm)
-        self.optimizer.found_inf = bad
-        self.optimizer.step()
-        self.scheduler.step()
-        self.guard.record(bad)
+        step = guarded_agent_step(
+            self.optimizer, loss, max_grad_norm=self.grad_clip, scheduler=self.scheduler
+        )
+        self.guard.record(step.skipped)  # NaN/inf: the step was skipped (the warm-up goes on)
         self.num_updates += 1
         return {
             "loss/action": loss.detach(),
-            "train/grad_norm": grad_norm.detach(),
+            "train/grad_norm": step.grad_norm,
         } | self.guard.metrics()
 
     # --- checkpoints ------------------------------------------------------------------------

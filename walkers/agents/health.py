@@ -1,12 +1,17 @@
 """The NaN/inf guard every agent shares: skipped updates, counted on the device.
 
-An update whose loss is not finite is skipped (the caller makes the optimizer step a no-op) and
-counted. Counting happens in device tensors, so the guard adds no host-device sync to the hot
-loop; the trainer reads ``health/*`` only when it logs, and ends a run whose updates have all been
-skipped for too long (:class:`walkers.training.bookkeeping.TrainingDiverged`).
+An optimizer step whose loss or gradient is not finite is skipped and the update counted. Every
+agent steps through :func:`guarded_step` (a population's members, each skipped on its own) or
+:func:`guarded_agent_step` (one agent, with gradient clipping and a learning-rate schedule): they
+set the fused optimizer's ``found_inf``, which makes its step a no-op, here and nowhere else.
+Checks and counts are device tensors, so the guard adds no host-device sync to the hot loop; the
+trainer reads ``health/*`` only when it logs, and ends a run whose updates have all been skipped
+for too long (:class:`walkers.training.bookkeeping.TrainingDiverged`).
 """
 
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import torch
 
@@ -23,14 +28,6 @@ class NonFiniteGuard:
         #: a delayed step (TD3's actor, every d updates) that was skipped the last time it ran:
         #: the updates in between, which do not run it, are no proof that it recovered
         self.delayed_bad = torch.zeros(shape, device=device)
-
-    @staticmethod
-    def is_bad(*values: torch.Tensor) -> torch.Tensor:
-        """1.0 if any of ``values`` is NaN/inf, else 0.0 (a device tensor, no sync)."""
-        finite = torch.isfinite(values[0]).all()
-        for value in values[1:]:
-            finite &= torch.isfinite(value).all()
-        return (~finite).to(torch.float32)
 
     @staticmethod
     def bad_members(*values: torch.Tensor) -> torch.Tensor:
@@ -72,6 +69,15 @@ class NonFiniteGuard:
             counter.copy_(torch.as_tensor(state.get(name, torch.zeros_like(counter).tolist())))
 
 
+class GuardedStep(NamedTuple):
+    """What one guarded step did."""
+
+    #: 1.0 where the step was skipped, 0.0 where it was taken (shaped like the loss)
+    skipped: torch.Tensor
+    #: one agent's global gradient norm before clipping (None for a population)
+    grad_norm: torch.Tensor | None
+
+
 def guarded_step(
     optimizer: torch.optim.Optimizer,
     member_loss: torch.Tensor,
@@ -84,33 +90,71 @@ def guarded_step(
     No host sync: a bad member's gradients are zeroed (NaN included), and fused Adam's
     ``found_inf`` skips the whole step when every member is bad (for a single agent: whenever
     it is). ``copies``: parameter members per agent member (e.g. the critics per member);
-    ``also_bad``: members to skip for another reason. Returns the skipped members ``(K,)``.
+    ``also_bad``: members to skip for another reason. ``optimizer``: fused (Adam, AdamW), the
+    kind that reads ``found_inf``. Returns the skipped members ``(K,)``.
     """
+    return _step(optimizer, member_loss, copies, also_bad).skipped
+
+
+def guarded_agent_step(
+    optimizer: torch.optim.Optimizer,
+    loss: torch.Tensor,
+    *,
+    max_grad_norm: float | None = None,
+    scheduler: torch.optim.lr_scheduler.LRScheduler | None = None,
+) -> GuardedStep:
+    """One agent's step on its scalar ``loss``, as :func:`guarded_step` guards it, with what
+    the on-policy and offline agents add between backward and step.
+
+    ``max_grad_norm``: the global gradient norm is clipped to it (None: no clip); the norm
+    before clipping is returned for logging, and a NaN/inf norm is what skips the step.
+    ``scheduler``: advanced after the step, skipped or not (the schedule counts updates;
+    stepping it only after a taken step would need the verdict on the host, a sync).
+    """
+    return _step(optimizer, loss, 1, None, max_grad_norm, scheduler)
+
+
+def _step(
+    optimizer: torch.optim.Optimizer,
+    member_loss: torch.Tensor,
+    copies: int,
+    also_bad: torch.Tensor | None,
+    max_grad_norm: float | None = None,
+    scheduler: torch.optim.lr_scheduler.LRScheduler | None = None,
+) -> GuardedStep:
+    """Backward, check, clip, step: the one implementation behind both guarded steps."""
     optimizer.zero_grad(set_to_none=True)
     member_loss.sum().backward()
-    bad = torch.maximum(
-        NonFiniteGuard.bad_members(member_loss), bad_gradients(optimizer, member_loss.numel())
-    )
+    params = [p for group in optimizer.param_groups for p in group["params"]]
+    grads = [p.grad for p in params if p.grad is not None]
+    members = member_loss.numel()
+    grad_norm = None
+    if members == 1:  # one agent: the total norm (fused over all gradients) is finite or not
+        grad_norm = torch.nn.utils.get_total_norm(grads)
+        bad_grads = (~torch.isfinite(grad_norm)).to(torch.float32).view(1)
+        if max_grad_norm is not None:  # what clip_grad_norm_ does, reusing the norm
+            torch.nn.utils.clip_grads_with_norm_(params, max_grad_norm, grad_norm)
+    else:
+        if max_grad_norm is not None:
+            raise ValueError("gradient-norm clipping is per agent, not for a population")
+        bad_grads = _bad_member_gradients(grads, members)
+    bad = torch.maximum(NonFiniteGuard.bad_members(member_loss.view(-1)), bad_grads)
     if also_bad is not None:
         bad = torch.maximum(bad, also_bad)
     optimizer.found_inf = bad.min()
-    if bad.numel() > 1:  # one agent: found_inf skips the step already
+    if members > 1:  # one agent: found_inf skips the step already
         skip = (bad > 0).repeat_interleave(copies)
-        for group in optimizer.param_groups:
-            for param in group["params"]:
-                if param.grad is not None:  # members lead every parameter's dimensions
-                    param.grad.masked_fill_(skip.view(-1, *(1,) * (param.dim() - 1)), 0.0)
+        for grad in grads:  # members lead every parameter's dimensions
+            grad.masked_fill_(skip.view(-1, *(1,) * (grad.dim() - 1)), 0.0)
     optimizer.step()
-    return bad
+    if scheduler is not None:
+        scheduler.step()
+    return GuardedStep(bad.view(member_loss.shape), grad_norm)
 
 
-def bad_gradients(optimizer: torch.optim.Optimizer, members: int) -> torch.Tensor:
+def _bad_member_gradients(grads: list[torch.Tensor], members: int) -> torch.Tensor:
     """Per member ``(members,)``: 1.0 where any of its gradients is NaN/inf. Every parameter's
     leading dimension holds the members (each member's copies, e.g. its critics, together)."""
-    grads = [p.grad for group in optimizer.param_groups for p in group["params"]]
-    grads = [g for g in grads if g is not None]
-    if members == 1:  # one agent: the total norm (fused over all gradients) is finite or not
-        return (~torch.isfinite(torch.nn.utils.get_total_norm(grads))).to(torch.float32).view(1)
     finite = torch.ones(members, dtype=torch.bool, device=grads[0].device)
     for grad in grads:
         finite &= torch.isfinite(grad).reshape(members, -1).all(dim=1)

@@ -37,15 +37,13 @@ NaN reaching the rollout has usually poisoned the normalizer's statistics too).
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 
 import numpy as np
 import torch
-from torch import nn
 
 from walkers.agents.base import Agent, Transition, resolve_device
-from walkers.agents.health import NonFiniteGuard
+from walkers.agents.health import NonFiniteGuard, guarded_agent_step
 from walkers.agents.normalization import ObservationNormalizer, RewardScaler
 from walkers.agents.policies import GaussianPolicy, orthogonal_mlp
 from walkers.data.rollouts import Rollout, gae
@@ -266,13 +264,8 @@ class PPO(Agent):
         entropy = dist.entropy().sum(-1).mean()
         loss = policy_loss - self.ent_coef * entropy + self.vf_coef * v_loss
 
-        self.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        grad_norm = nn.utils.clip_grad_norm_(self.params, self.max_grad_norm or math.inf)
-        bad = self.guard.is_bad(loss, grad_norm)  # NaN/inf: skip this step, count it
-        self.guard.record(bad)
-        self.optimizer.found_inf = bad  # fused Adam skips the step without a host sync
-        self.optimizer.step()
+        step = guarded_agent_step(self.optimizer, loss, max_grad_norm=self.max_grad_norm)
+        self.guard.record(step.skipped)  # NaN/inf: this minibatch's step was skipped
         with torch.no_grad():  # diagnostics (k3 estimator of KL(old || new), Schulman 2020)
             approx_kl = ((ratio - 1) - log_ratio).mean()
             clip_fraction = ((ratio - 1).abs() > self.clip_coef).float().mean()
@@ -282,7 +275,7 @@ class PPO(Agent):
             "entropy": entropy.detach(),
             "kl": approx_kl,
             "clip": clip_fraction,
-            "grad": grad_norm.detach(),
+            "grad": step.grad_norm,
         }
 
     def _anneal_learning_rate(self) -> float:

@@ -11,8 +11,9 @@ with G_t the discounted return-to-go. Stabilizers (each a switch, on by default)
 - ``max_grad_norm``: global gradient-norm clipping against destructive updates;
 - ``log_std_min`` / ``log_std_max``: log-std clamped so the policy neither collapses (std -> 0)
   nor becomes uniform noise (std -> inf);
-- a non-finite guard: an update whose loss or gradients are NaN/inf is skipped and counted
-  (``health/skipped_updates``) instead of poisoning the weights.
+- a non-finite guard: a step whose loss or gradients are NaN/inf is skipped (the policy's and
+  the baseline's each on its own), and the update counted (``health/skipped_updates``) on the
+  device, instead of poisoning the weights.
 
 ``baseline=true`` adds a learned state-value baseline V(s) (advantage G_t - V(s_t)); off by
 default so the default is the plain no-baseline REINFORCE of the study.
@@ -29,10 +30,9 @@ from collections.abc import Sequence
 
 import numpy as np
 import torch
-from torch import nn
 
 from walkers.agents.base import Agent, Transition, resolve_device
-from walkers.agents.health import NonFiniteGuard
+from walkers.agents.health import NonFiniteGuard, guarded_agent_step
 from walkers.agents.networks import mlp
 from walkers.agents.policies import GaussianPolicy
 from walkers.data.rollouts import Rollout, returns_to_go
@@ -131,26 +131,17 @@ class Reinforce(Agent):
         log_prob = dist.log_prob(actions).sum(-1)
         entropy = dist.entropy().sum(-1).mean()
         loss = -(log_prob * advantages).mean() - self.entropy_coef * entropy
-        self.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        grad_norm = nn.utils.clip_grad_norm_(
-            self.policy.parameters(), self.max_grad_norm or float("inf")
-        )
-        bad = self.guard.is_bad(loss, grad_norm)
-        self.guard.record(bad)
-        if not bad:
-            self.optimizer.step()
-        else:  # NaN/inf guard: drop this update rather than poison the weights
-            self.optimizer.zero_grad(set_to_none=True)
-        if self.value is not None:
-            self.value_optimizer.zero_grad(set_to_none=True)
-            value_loss.backward()
-            self.value_optimizer.step()
+        step = guarded_agent_step(self.optimizer, loss, max_grad_norm=self.max_grad_norm)
+        skipped = step.skipped
+        if self.value is not None:  # the baseline's step, skipped on its own NaN/inf
+            baseline = guarded_agent_step(self.value_optimizer, value_loss)
+            skipped = torch.maximum(skipped, baseline.skipped)
+        self.guard.record(skipped)  # counted once: this update skipped a step
         metrics.update(
             {
                 "loss/policy": loss.detach(),
                 "train/entropy": entropy.detach(),
-                "train/grad_norm": grad_norm.detach(),
+                "train/grad_norm": step.grad_norm,
                 "train/log_std_mean": self.policy.log_std.detach().mean(),
             }
             | self.guard.metrics()

@@ -77,13 +77,12 @@ def _td3_with_a_broken_actor(patience_updates: int = 12):
         agent.observe(Transition(obs, action, reward, next_obs, terminated, over))
         obs = next_obs
     env.close()
-    real_actor_loss = agent._actor_loss
+    real_actor_loss = agent.actor_loss
 
-    def nan_actor_loss(obs, noise):  # a fault in the actor's step alone; the critic's is sound
-        loss, info = real_actor_loss(obs, noise)
-        return loss * float("nan"), info
+    def nan_actor_loss(obs):  # a fault in the actor's step alone; the critic's is sound
+        return real_actor_loss(obs) * float("nan")
 
-    agent._actor_loss = nan_actor_loss
+    agent.actor_loss = nan_actor_loss
     return agent, [agent.update() for _ in range(patience_updates)]
 
 

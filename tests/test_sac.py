@@ -94,7 +94,7 @@ def test_the_temperature_rises_when_entropy_is_below_target_and_falls_above():
     loss = agent.temperature_loss(log_pi)
     grad = torch.autograd.grad(loss.sum(), agent.temperature.log_alpha)[0]
     assert grad[0] < 0 < grad[1]  # dJ/dlog(alpha) = -(log pi + target)
-    metrics = agent.after_actor_step(log_pi, skip=torch.zeros(2))
+    metrics = agent.temperature_step(log_pi, skip=torch.zeros(2))
     after = agent.temperature()
     assert after[0] > before[0] and after[1] < before[1]
     torch.testing.assert_close(metrics["train/entropy"], torch.tensor([-5.0, 3.0]))

@@ -1,16 +1,18 @@
-"""Off-policy actor-critic with experience replay: the shared core of TD3, DDPG and SAC.
+"""Off-policy actor-critic with experience replay: what TD3, DDPG, SAC and CrossQ share.
 
-The core holds what the three share: replay buffers, the actor and critic ensembles and their
-targets, Adam, the uniform random warm-up, the NaN/inf guard, populations and checkpoints, and
-the loop of one update (:meth:`ActorCritic.update`): sample a mini-batch, step the critics onto
-their target, then every ``policy_delay`` updates step the actor (and what follows it) and move
-the targets. What makes an algorithm is its own module, readable next to its paper:
+Each algorithm owns its update, written in its paper's order in its own module:
 
-- :mod:`walkers.agents.td3`: TD3's target (clipped smoothing noise, min of the twin critics),
-  its deterministic policy gradient, delayed updates and Gaussian exploration (Algorithm 1 of
-  Fujimoto et al. 2018); :mod:`walkers.agents.ddpg` is TD3 with those three off;
-- :mod:`walkers.agents.sac`: the soft target, the reparameterized actor loss, the temperature
-  and exploration by the policy's own samples.
+- :mod:`walkers.agents.td3`: TD3 (Fujimoto et al. 2018, Algorithm 1); :mod:`walkers.agents.ddpg`
+  is TD3 with its three ideas off;
+- :mod:`walkers.agents.sac`: SAC v2 (Haarnoja et al. 2018, Algorithm 1);
+- :mod:`walkers.agents.crossq`: CrossQ (Bhatt et al. 2024): SAC without target networks, with
+  Batch Renormalization in wide critics and one joint forward pass.
+
+This core holds only what they share, none of it particular to one algorithm: the actor and
+critic ensembles and their Adam optimizers, the replay buffers and the uniform random warm-up,
+acting, one mini-batch per member (:meth:`ActorCritic.sample`), the NaN/inf guard
+(:meth:`ActorCritic.step`), target networks for those that have them (:meth:`target_of`,
+:func:`~walkers.agents.networks.soft_update`), ``compile``, populations and checkpoints.
 
 Every network is an ensemble with a leading *member* dimension: a single agent is a population of
 one, ``population=K`` trains K independent seeds (``seed, seed + 1, ...``) with one batched
@@ -24,7 +26,8 @@ from __future__ import annotations
 
 import copy
 import logging
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 
 import numpy as np
 import torch
@@ -33,7 +36,7 @@ from torch import nn
 from walkers.agents import population as members_io
 from walkers.agents.base import Agent, Transition, resolve_device
 from walkers.agents.health import NonFiniteGuard, guarded_step
-from walkers.agents.networks import EnsembleActor, make_critic, soft_update
+from walkers.agents.networks import EnsembleActor, make_critic
 from walkers.agents.noise import GaussianNoise
 from walkers.agents.population import Member
 from walkers.data.replay import Batch, ReplayBuffer
@@ -43,15 +46,15 @@ log = logging.getLogger("walkers")
 
 
 class ActorCritic(Agent):
-    """The shared core (see the module docstring). A subclass sets :attr:`num_critics`,
-    :attr:`policy_delay` (or an attribute of that name in its constructor), its actor class, and
-    implements the hooks: :meth:`exploration_noise`, :meth:`policy`, :meth:`update_noise`,
-    :meth:`next_value` and :meth:`actor_loss` (optionally :meth:`after_actor_step`)."""
+    """The shared core (see the module docstring). An algorithm subclasses it with its own
+    :meth:`update`, :meth:`exploration_noise` and :meth:`policy`; it may set :attr:`actor_class`
+    and :attr:`num_critics`, build its critic (:meth:`build_critic`), add target networks
+    (:meth:`target_of`) and list its per-member parts beyond the core's (:meth:`member_cuts`)."""
 
     actor_class: type[nn.Module] = EnsembleActor  # built as (n, obs, act, hidden, low, high)
-    uses_actor_target = True  # a target actor pi' (DDPG, TD3); SAC has none
     num_critics = 2  # critics per member
-    policy_delay = 1  # critic updates per actor update and target move
+    #: the methods ``compile=True`` runs through torch.compile (the losses, forward and backward)
+    compiled_losses: tuple[str, ...] = ("critic_loss", "actor_loss")
 
     def __init__(
         self,
@@ -70,6 +73,7 @@ class ActorCritic(Agent):
         critic_lr: float | None = None,
         critic_architecture: str | None = None,
         critic_hidden_sizes: Sequence[int] | None = None,
+        adam_betas: Sequence[float] = (0.9, 0.999),
         population: int = 1,
         compile: bool,
         device: str = "cpu",
@@ -88,22 +92,16 @@ class ActorCritic(Agent):
             self.population, obs_dim, act_dim, hidden_sizes, action_low, action_high
         ).to(self.device)
         critic_hidden = hidden_sizes if critic_hidden_sizes is None else critic_hidden_sizes
-        self.critic = make_critic(
-            critic_architecture or "mlp",  # TD3's and SAC's; DDPG declares the choice
-            obs_dim,
-            act_dim,
-            critic_hidden,
-            self.num_critics * self.population,
+        # TD3's and SAC's critic architecture is "mlp"; DDPG declares the choice
+        self.critic = self.build_critic(
+            critic_architecture or "mlp", obs_dim, act_dim, critic_hidden
         ).to(self.device)
-        self.actor_target = (
-            copy.deepcopy(self.actor).requires_grad_(False) if self.uses_actor_target else None
-        )
-        self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
+        betas = tuple(adam_betas)
         self.actor_optimizer = torch.optim.Adam(
-            self.actor.parameters(), lr=actor_lr or lr, fused=True
+            self.actor.parameters(), lr=actor_lr or lr, betas=betas, fused=True
         )
         self.critic_optimizer = torch.optim.Adam(
-            self.critic.parameters(), lr=critic_lr or lr, fused=True
+            self.critic.parameters(), lr=critic_lr or lr, betas=betas, fused=True
         )
         self.low_t = torch.as_tensor(self.action_low, device=self.device)
         self.high_t = torch.as_tensor(self.action_high, device=self.device)
@@ -126,18 +124,26 @@ class ActorCritic(Agent):
         self.random_until = self.update_after = self.learning_starts
         self.refilled_at: int | None = None  # the step a resume without the buffer refilled from
         self.guard = NonFiniteGuard(self.device, (self.population,))
-        self._critic_loss, self._actor_loss = self.critic_loss, self.actor_loss
         if compile:
             self._compile_losses()
 
+    def build_critic(self, architecture: str, obs_dim: int, act_dim: int, hidden) -> nn.Module:
+        """The critics of every member as one ensemble of ``num_critics * population``."""
+        n = self.num_critics * self.population
+        return make_critic(architecture, obs_dim, act_dim, hidden, n)
+
+    def target_of(self, network: nn.Module) -> nn.Module:
+        """A target network theta' of ``network``: a frozen copy, moved by soft updates."""
+        return copy.deepcopy(network).requires_grad_(False)
+
     def _compile_losses(self) -> None:
-        """``compile=True``: the two loss computations, forward and backward, through
-        ``torch.compile`` (fused elementwise work, less dispatch). On CUDA with CUDA graphs
-        (``reduce-overhead``), where a small update is launch-bound. The optimizer steps stay
-        eager: fused Adam is one kernel already and keeps the NaN guard's step skip."""
+        """``compile=True``: the loss computations (:attr:`compiled_losses`), forward and
+        backward, through ``torch.compile`` (fused elementwise work, less dispatch). On CUDA with
+        CUDA graphs (``reduce-overhead``), where a small update is launch-bound. The optimizer
+        steps stay eager: fused Adam is one kernel already and keeps the NaN guard's step skip."""
         mode = "reduce-overhead" if self.device.type == "cuda" else None
-        self._critic_loss = torch.compile(self.critic_loss, mode=mode)
-        self._actor_loss = torch.compile(self.actor_loss, mode=mode)
+        for name in self.compiled_losses:
+            setattr(self, name, torch.compile(getattr(self, name), mode=mode))
 
     @property
     def buffer(self) -> ReplayBuffer:
@@ -177,80 +183,54 @@ class ActorCritic(Agent):
     def observe(self, t: Transition) -> None:
         self.observe_population([t])
 
-    # --- learning: the loop of one update --------------------------------------------------------
+    # --- learning: what every update shares -------------------------------------------------
     def update(self) -> dict[str, torch.Tensor]:
+        """One gradient update, the algorithm's own (it starts with :meth:`begin_update`)."""
+        raise NotImplementedError
+
+    def begin_update(self) -> bool:
+        """Whether it is time to learn (past the warm-up, a batch in the buffer); if so, counts
+        the update (:attr:`num_updates`: the delayed steps are every d-th)."""
         if self.steps < self.update_after or len(self.buffer) < self.batch_size:
-            return {}
+            return False
         self.num_updates += 1
-        b = self.sample()  # a mini-batch of N transitions (s, a, r, s', d) per member
-        critic_noise, actor_noise = self.update_noise(b)
-
-        # Critics: y = r + gamma (1 - d) V'(s');  theta_i <- argmin N^-1 sum (y - Q_i)^2
-        critic_loss, q_mean = self._critic_loss(b, critic_noise)
-        critic_bad = guarded_step(self.critic_optimizer, critic_loss, self.num_critics)
-        actor_bad = None  # this update's actor step skipped (None: no actor step this time)
-        metrics = {"loss/critic": _logged(critic_loss), "train/q_mean": _logged(q_mean)}
-
-        # Every d updates: the actor's step (and the algorithm's step after it), then the soft
-        # target updates theta' <- tau theta + (1 - tau) theta', phi' <- tau phi + (1 - tau) phi'.
-        if self.num_updates % self.policy_delay == 0:
-            self.critic.requires_grad_(False)  # the actor's gradient only: no critic weight grads
-            actor_loss, actor_info = self._actor_loss(b.obs, actor_noise)
-            self.critic.requires_grad_(True)
-            # critic_bad, not the critic loss: under CUDA graphs the actor-loss run has already
-            # reclaimed the critic-loss run's outputs.
-            actor_bad = guarded_step(self.actor_optimizer, actor_loss, 1, also_bad=critic_bad)
-            metrics["loss/actor"] = _logged(actor_loss)
-            metrics |= self.after_actor_step(actor_info, actor_bad)
-            soft_update(self.critic_target, self.critic, self.tau)
-            if self.actor_target is not None:
-                soft_update(self.actor_target, self.actor, self.tau)
-        # skipped: a critic step, or the actor's latest step, was (health/*, divergence_patience)
-        self.guard.record(critic_bad, delayed_bad=actor_bad)
-        return metrics | self.guard.metrics()
+        return True
 
     def update_noise(self, b: Batch) -> tuple[torch.Tensor | None, torch.Tensor | None]:
         """The random numbers of one update, for the critic loss and the actor loss: drawn
         outside them so a compiled update draws the same numbers as eager."""
         raise NotImplementedError
 
-    def critic_loss(
-        self, b: Batch, noise: torch.Tensor | None
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Per-member critic loss ``(K,)`` (the sum of its critics' MSEs) and mean Q ``(K,)``.
+    @staticmethod
+    def step(
+        optimizer: torch.optim.Optimizer,
+        member_loss: torch.Tensor,
+        copies: int = 1,
+        also_bad: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """One optimizer step on the per-member losses ``(K,)``, skipping the members whose loss
+        or gradient is NaN/inf, or who are ``also_bad`` (``health.guarded_step``; ``copies``:
+        parameter members per agent member, e.g. its critics). Returns the skipped members."""
+        return guarded_step(optimizer, member_loss, copies, also_bad=also_bad)
 
-        Every Q_i regresses onto y = r + gamma * (1 - terminated) * V'(s'), V' being
-        :meth:`next_value` (``noise``: the critic's part of :meth:`update_noise`).
-        """
-        K, C = self.population, self.num_critics
-        with torch.no_grad():
-            y = b.reward + self.gamma * (1.0 - b.terminated) * self.next_value(b.next_obs, noise)
-        q = self.critic(self._per_critic(b.obs), self._per_critic(b.action)).unflatten(0, (K, C))
-        member_loss = (q - y.unsqueeze(1)).pow(2).mean(dim=2).sum(dim=1)
-        return member_loss, q.detach().mean(dim=(1, 2))
-
-    def next_value(self, next_obs: torch.Tensor, noise: torch.Tensor | None) -> torch.Tensor:
-        """V'(s') ``(K, N)``, what the critics' target bootstraps from (``noise``: the critic's
-        part of :meth:`update_noise`)."""
-        raise NotImplementedError
-
-    def min_target_q(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        """min_j Q'_j(s, a) ``(K, N)`` over each member's target critics (clipped double-Q)."""
-        next_q = self.critic_target(self._per_critic(obs), self._per_critic(action))
-        return next_q.unflatten(0, (self.population, self.num_critics)).min(dim=1).values
-
-    def actor_loss(
-        self, obs: torch.Tensor, noise: torch.Tensor | None
-    ) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """Per-member actor loss ``(K,)`` and what :meth:`after_actor_step` needs of it."""
-        raise NotImplementedError
-
-    def after_actor_step(
-        self, actor_info: torch.Tensor | None, skip: torch.Tensor
+    def record_health(
+        self, bad: torch.Tensor, delayed_bad: torch.Tensor | None
     ) -> dict[str, torch.Tensor]:
-        """A step after the actor's, before the target updates (SAC: the temperature); its
-        metrics. ``skip``: members whose update is skipped (a non-finite loss)."""
-        return {}
+        """Count this update's skipped steps (``delayed_bad``: the delayed step's, None when it
+        did not run) and return the ``health/*`` metrics (``divergence_patience`` reads them)."""
+        self.guard.record(bad, delayed_bad=delayed_bad)
+        return self.guard.metrics()
+
+    def q_values(self, critic: nn.Module, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """Q_j(s, a) of every member's critics ``(K, C, N)`` for ``(K, N, d)`` inputs."""
+        q = critic(self._per_critic(obs), self._per_critic(action))
+        return q.unflatten(0, (self.population, self.num_critics))
+
+    @staticmethod
+    def critics_regression(q: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        """Per-member critic loss ``(K,)``: the sum over its critics of N^-1 sum (y - Q_j)^2,
+        for Q ``(K, C, N)`` and targets y ``(K, N)`` (constants)."""
+        return (q - y.unsqueeze(1)).pow(2).mean(dim=2).sum(dim=1)
 
     def sample(self) -> Batch:
         """One mini-batch per member, stacked: ``(K, batch, ...)`` tensors."""
@@ -316,12 +296,24 @@ class ActorCritic(Agent):
     def member_cuts(self, i: int) -> dict[str, slice]:
         """Member ``i``'s slice of the leading dimension of every per-member part, by attribute
         name: modules (their state dicts) and optimizers (their Adam moments). A member's
-        checkpoint holds these parts, cut; a subclass with more parts adds them here."""
-        own, critics = slice(i, i + 1), slice(i * self.num_critics, (i + 1) * self.num_critics)
-        cuts = {"actor": own, "critic": critics, "actor_target": own, "critic_target": critics}
-        if self.actor_target is None:
-            del cuts["actor_target"]
-        return cuts | {"actor_optimizer": own, "critic_optimizer": critics}
+        checkpoint holds these parts, cut; an algorithm with more parts (targets, a temperature)
+        adds them."""
+        own, critics = self.own_slice(i), self.critics_slice(i)
+        return {
+            "actor": own,
+            "critic": critics,
+            "actor_optimizer": own,
+            "critic_optimizer": critics,
+        }
+
+    @staticmethod
+    def own_slice(i: int) -> slice:
+        """Member ``i``'s entry of a per-member part (the actor, a temperature)."""
+        return slice(i, i + 1)
+
+    def critics_slice(self, i: int) -> slice:
+        """Member ``i``'s critics in the critic ensemble."""
+        return slice(i * self.num_critics, (i + 1) * self.num_critics)
 
     def member_policy(self, i: int) -> members_io.MemberAgent:
         """Member ``i`` as an agent of its own (evaluation rollouts, its checkpoints)."""
@@ -334,6 +326,17 @@ class ActorCritic(Agent):
         members_io.load_member_state_dict(self, i, state)
 
 
-def _logged(x: torch.Tensor) -> torch.Tensor:
+@contextmanager
+def frozen(network: nn.Module) -> Iterator[None]:
+    """No weight gradients for ``network`` inside (an actor's loss through the critics: the
+    gradient flows through their input, the action, and their weights stay as they are)."""
+    network.requires_grad_(False)
+    try:
+        yield
+    finally:
+        network.requires_grad_(True)
+
+
+def logged(x: torch.Tensor) -> torch.Tensor:
     """A per-member ``(K,)`` diagnostic to log: a copy, as CUDA graphs reuse their outputs."""
     return x.detach().clone()

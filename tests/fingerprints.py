@@ -38,6 +38,20 @@ CASES = {
         *SMALL_OFF_POLICY,
     ],
     "sac": ["algo=sac", *SMALL_OFF_POLICY],
+    # the renormalization past its warm-up within the run's updates
+    "crossq": [
+        "algo=crossq",
+        "algo.critic_hidden_sizes=[32,32]",
+        "algo.renorm_warmup_steps=100",
+        *SMALL_OFF_POLICY,
+    ],
+    "crossq_population2": [
+        "algo=crossq",
+        "population=2",
+        "algo.critic_hidden_sizes=[32,32]",
+        "algo.renorm_warmup_steps=100",
+        *SMALL_OFF_POLICY,
+    ],
     "ppo": ["algo=ppo", "algo.n_steps=128", "algo.n_minibatches=4", "algo.n_epochs=2"],
     "reinforce": ["algo=reinforce", "algo.episodes_per_update=1"],
 }

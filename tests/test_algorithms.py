@@ -1,28 +1,45 @@
-"""REINFORCE, DDPG and TD3 on the walking-robot catalogue: tiny runs, learning, the NaN guard."""
+"""Every online algorithm on the walking-robot catalogue (tiny runs); REINFORCE, DDPG and TD3:
+learning, the NaN guard."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 import torch
+from hydra.utils import get_class
 
 from tests.conftest import DESIGN_METRICS, TINY, all_runs, compose_cfg
+from tests.fingerprints import CASES
 from walkers.agents.base import Transition
 from walkers.agents.ddpg import DDPG
 from walkers.agents.factory import defaults_for
 from walkers.agents.reinforce import Reinforce, returns_to_go
+from walkers.agents.schemas import SCHEMAS
 from walkers.train import train
 from walkers.training.envs import make_env
 
 OFF_POLICY_TINY = ["algo.learning_starts=200", "algo.batch_size=64"]
 REINFORCE_TINY = ["algo.episodes_per_update=1"]
 PPO_TINY = ["algo.n_steps=128", "algo.n_minibatches=4", "algo.n_epochs=2"]  # updates 4 times
+#: tiny settings by algorithm; the replay-based ones take OFF_POLICY_TINY
+TINY_ALGO = {
+    "reinforce": REINFORCE_TINY,
+    "ppo": PPO_TINY,
+    "crossq": [*OFF_POLICY_TINY, "algo.critic_hidden_sizes=[64,64]"],
+}
+#: every algorithm that learns from env steps, from the declarations (algo=dt learns offline)
+ONLINE = [name for name, schema in SCHEMAS.items() if not get_class(schema.AGENT).offline]
+
+
+def test_the_online_algorithms_are_the_declared_ones():
+    assert {"reinforce", "ppo", "ddpg", "td3", "sac", "crossq"} <= set(ONLINE)
+    assert "dt" not in ONLINE
 
 
 @pytest.mark.parametrize("env", ["pendulum", "bipedal_walker", "walker2d"])
-@pytest.mark.parametrize("algo", ["reinforce", "ppo", "ddpg", "td3"])
+@pytest.mark.parametrize("algo", ONLINE)
 def test_every_algo_completes_a_tiny_run(store, algo, env):
-    extra = {"reinforce": REINFORCE_TINY, "ppo": PPO_TINY}.get(algo, OFF_POLICY_TINY)
+    extra = TINY_ALGO.get(algo, OFF_POLICY_TINY)
     train(compose_cfg([f"algo={algo}", f"env={env}", *TINY, *extra, *store["overrides"]]))
     (run,) = all_runs(store["client"])
     assert run.info.status == "FINISHED"
@@ -30,6 +47,9 @@ def test_every_algo_completes_a_tiny_run(store, algo, env):
     assert DESIGN_METRICS <= set(run.data.metrics)
     if algo == "ppo":  # it learned, and says how
         assert {"loss/policy", "loss/value", "train/approx_kl", "train/lr"} <= set(run.data.metrics)
+    if algo in ("sac", "crossq"):  # and the temperature
+        assert {"loss/critic", "loss/alpha", "train/alpha"} <= set(run.data.metrics)
+        assert run.data.metrics["health/skipped_updates"] == 0
     if env != "walker2d" or algo != "reinforce":  # short walker episodes: at least one ends
         assert "train/episode_return" in run.data.metrics
 
@@ -125,3 +145,11 @@ def test_any_continuous_gymnasium_id_works_by_override(store):
     )
     (run,) = all_runs(store["client"])
     assert run.data.tags["env"] == "MountainCarContinuous-v0" and run.info.status == "FINISHED"
+
+
+def test_every_online_algorithm_has_a_seeded_fingerprint():
+    """tests/fingerprints.py proves a restructuring changed no behaviour: for every algorithm."""
+    fingerprinted = {
+        o.removeprefix("algo=") for case in CASES.values() for o in case if o.startswith("algo=")
+    }
+    assert set(ONLINE) <= fingerprinted

@@ -1,5 +1,6 @@
-"""SAC: the squashed Gaussian's math, the temperature, reproducibility, populations, compile,
-checkpoints and resume through the CLI, tiny runs on the catalogue, and learning Pendulum (whose
+"""SAC and CrossQ, the soft actor-critics: the squashed Gaussian's math, the temperature;
+for both, reproducibility, populations, the NaN guard, compile and checkpoints (CrossQ's with its
+normalization's running statistics); SAC's resume through the CLI, and learning Pendulum (whose
 policy is then replayed by walkers.evaluate and recorded by walkers.collect)."""
 
 from __future__ import annotations
@@ -11,8 +12,9 @@ import pytest
 import torch
 from torch.distributions import Normal, TanhTransform, TransformedDistribution
 
-from tests.conftest import DESIGN_METRICS, TINY, all_runs, compose_cfg, new_store, run_cli
+from tests.conftest import TINY, all_runs, compose_cfg, new_store, run_cli
 from walkers.agents.base import Transition
+from walkers.agents.crossq import CrossQ
 from walkers.agents.factory import defaults_for
 from walkers.agents.networks import EnsembleGaussianActor, tanh_log_det_jacobian
 from walkers.agents.sac import SAC
@@ -23,10 +25,23 @@ from walkers.training.collection import collect
 from walkers.training.envs import make_env
 from walkers.training.policy_replay import evaluate
 
-SMALL = defaults_for(
-    SAC, batch_size=16, learning_starts=20, hidden_sizes=[16, 16], buffer_size=1000
+TINY_REPLAY = {
+    "batch_size": 16,
+    "learning_starts": 20,
+    "hidden_sizes": [16, 16],
+    "buffer_size": 1000,
+}
+SMALL = defaults_for(SAC, **TINY_REPLAY)
+#: CrossQ small, its renormalization past its warm-up within feed()'s 41 updates
+SMALL_CROSSQ = defaults_for(
+    CrossQ, **TINY_REPLAY, critic_hidden_sizes=[16, 16], renorm_warmup_steps=30, policy_delay=2
 )
+SOFT = pytest.mark.parametrize("cls", [SAC, CrossQ], ids=["sac", "crossq"])
 OBS = 3
+
+
+def small(cls) -> dict:
+    return SMALL if cls is SAC else SMALL_CROSSQ
 
 
 def feed(agent: SAC, steps: int = 60, rewards=(1.0, -1.0, 0.5)) -> None:
@@ -47,9 +62,12 @@ def feed(agent: SAC, steps: int = 60, rewards=(1.0, -1.0, 0.5)) -> None:
 
 
 def parameters(agent: SAC) -> dict[str, torch.Tensor]:
+    """Every per-member module's state (weights, targets, the temperature; CrossQ's running
+    statistics), by name."""
+    modules = [n for n in agent.member_cuts(0) if isinstance(getattr(agent, n), torch.nn.Module)]
     return {
         f"{name}.{key}": value
-        for name in ("actor", "critic", "critic_target", "temperature")
+        for name in modules
         for key, value in getattr(agent, name).state_dict().items()
     }
 
@@ -102,9 +120,10 @@ def test_the_temperature_rises_when_entropy_is_below_target_and_falls_above():
 
 
 # --- the agent -----------------------------------------------------------------------------------
-def test_same_seed_same_run_other_seed_other_run():
+@SOFT
+def test_same_seed_same_run_other_seed_other_run(cls):
     def run(seed):
-        agent = SAC(OBS, [-2.0], [2.0], seed=seed, **SMALL)
+        agent = cls(OBS, [-2.0], [2.0], seed=seed, **small(cls))
         feed(agent)
         return agent, agent.act(np.ones(OBS), explore=True)
 
@@ -118,12 +137,14 @@ def test_same_seed_same_run_other_seed_other_run():
     assert np.array_equal(greedy, a.act(np.ones(OBS), explore=False)) and abs(greedy[0]) <= 2
 
 
-def test_a_checkpoint_continues_the_same_experiment():
-    original = SAC(OBS, [-2.0], [2.0], seed=0, **SMALL)
+@SOFT
+def test_a_checkpoint_continues_the_same_experiment(cls):
+    original = cls(OBS, [-2.0], [2.0], seed=0, **small(cls))
     feed(original)
     state = original.state_dict(with_buffer=True)
     assert {"temperature", "alpha_optimizer"} <= set(state) and "actor_target" not in state
-    restored = SAC(OBS, [-2.0], [2.0], seed=9, **SMALL)  # another seed, fresh optimizers
+    assert ("critic_target" in state) == (cls is SAC)  # CrossQ has no target networks
+    restored = cls(OBS, [-2.0], [2.0], seed=9, **small(cls))  # another seed, fresh optimizers
     restored.load_state_dict(state)
     for agent in (original, restored):  # the update's samples come from torch's global RNG,
         torch.manual_seed(1)  # which a run's checkpoint holds (the trainer's torch_rng)
@@ -136,12 +157,13 @@ def test_a_checkpoint_continues_the_same_experiment():
     )
 
 
-def test_population_members_cut_out_and_loaded_back():
-    population = SAC(OBS, [-2.0], [2.0], population=3, seed=0, **SMALL)
+@SOFT
+def test_population_members_cut_out_and_loaded_back(cls):
+    population = cls(OBS, [-2.0], [2.0], population=3, seed=0, **small(cls))
     feed(population)
     alphas = population.temperature()
     assert len(set(alphas.tolist())) == 3  # each member tunes its own temperature
-    single = SAC(OBS, [-2.0], [2.0], seed=2, **SMALL)
+    single = cls(OBS, [-2.0], [2.0], seed=2, **small(cls))
     single.load_state_dict(population.member_state_dict(2, with_buffer=True))
     obs = np.array([0.1, -0.3, 0.7])
     np.testing.assert_allclose(
@@ -150,7 +172,7 @@ def test_population_members_cut_out_and_loaded_back():
     assert single.temperature().item() == alphas[2].item()
     assert len(single.buffer) == 60 and single.update()  # it keeps learning on its own
 
-    rebuilt = SAC(OBS, [-2.0], [2.0], population=3, seed=7, **SMALL)
+    rebuilt = cls(OBS, [-2.0], [2.0], population=3, seed=7, **small(cls))
     for i in range(3):
         rebuilt.load_member_state_dict(i, population.member_state_dict(i, with_buffer=True))
     for agent in (population, rebuilt):
@@ -160,9 +182,12 @@ def test_population_members_cut_out_and_loaded_back():
         assert torch.equal(value, parameters(rebuilt)[key]), key
 
 
-def test_a_nan_stays_in_its_member():
+@SOFT
+def test_a_nan_stays_in_its_member(cls):
     def trained(rewards) -> SAC:
-        agent = SAC(OBS, [-2.0], [2.0], population=2, seed=0, **SMALL)  # also seeds torch's RNG
+        agent = cls(
+            OBS, [-2.0], [2.0], population=2, seed=0, **small(cls)
+        )  # also seeds torch's RNG
         feed(agent, rewards=rewards)
         return agent
 
@@ -174,10 +199,11 @@ def test_a_nan_stays_in_its_member():
     assert poisoned.guard.skipped[0].item() == 0 and poisoned.guard.skipped[1].item() > 0
 
 
-def test_compiled_updates_follow_the_eager_ones():
+@SOFT
+def test_compiled_updates_follow_the_eager_ones(cls):
     def filled(compile: bool) -> SAC:
-        agent = SAC(
-            5, [-2.0] * 2, [2.0] * 2, population=2, seed=3, **(SMALL | {"compile": compile})
+        agent = cls(
+            5, [-2.0] * 2, [2.0] * 2, population=2, seed=3, **(small(cls) | {"compile": compile})
         )
         rng = np.random.default_rng(0)
         for t in range(100):
@@ -192,15 +218,30 @@ def test_compiled_updates_follow_the_eager_ones():
         return agent
 
     eager, compiled = filled(False), filled(True)
+    # CrossQ: a hidden unit active on the whole batch, followed by a batch renormalization, has
+    # a bias whose exact gradient is zero (the normalization removes any shift): its computed
+    # gradient is rounding noise, which Adam's sign-like early steps turn into +-lr moves that
+    # differ between the compiled and eager sums (measured: 2e-3 on actor.layers.0.bias after 4
+    # updates, the rest 1e-6, the losses 5e-5 relative). Those biases get Adam's bound on 4 steps.
+    tolerance = {"rtol": 1e-3, "atol": 1e-4} if cls is CrossQ else {}
+    lr = small(cls)["lr"]
+
+    def tolerance_of(key: str) -> dict:
+        if cls is not CrossQ or not key.endswith(".bias") or ".layers." not in key:
+            return tolerance
+        name = key.split(".")[0]
+        last = key.startswith(f"{name}.layers.{len(getattr(eager, name).layers) - 1}.")
+        return tolerance if last else {"rtol": 0, "atol": 4 * lr}  # a renormalization follows
+
     for _ in range(4):
         torch.manual_seed(0)  # the same samples for both
         eager_metrics = eager.update()
         torch.manual_seed(0)
         compiled_metrics = compiled.update()
         for key, value in eager_metrics.items():
-            torch.testing.assert_close(compiled_metrics[key], value, msg=key)
+            torch.testing.assert_close(compiled_metrics[key], value, msg=key, **tolerance)
     for key, value in parameters(eager).items():
-        torch.testing.assert_close(parameters(compiled)[key], value, msg=key)
+        torch.testing.assert_close(parameters(compiled)[key], value, msg=key, **tolerance_of(key))
     assert not torch.equal(parameters(compiled)["temperature.log_alpha"], torch.zeros(2))
 
 
@@ -222,15 +263,6 @@ SAC_METRICS = {
     "health/skipped_updates",
     "health/skipped_in_a_row",
 }
-
-
-@pytest.mark.parametrize("env", ["pendulum", "bipedal_walker", "walker2d"])
-def test_tiny_runs_on_the_catalogue(store, env):
-    train(compose_cfg([*SAC_TINY, f"env={env}", *TINY, *store["overrides"]]))
-    (run,) = all_runs(store["client"])
-    assert run.info.status == "FINISHED" and run.data.tags["algo"] == "sac"
-    assert DESIGN_METRICS | SAC_METRICS | {"train/episode_return"} <= set(run.data.metrics)
-    assert run.data.metrics["health/skipped_updates"] == 0
 
 
 def test_a_resume_through_the_cli_continues_the_run(store):

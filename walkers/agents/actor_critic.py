@@ -67,7 +67,7 @@ class ActorCritic(Agent):
         learning_starts: int,
         hidden_sizes: Sequence[int],
         gamma: float,
-        tau: float,
+        tau: float | None = None,  # soft updates of target networks (CrossQ has none)
         buffer_size: int,
         actor_lr: float | None = None,
         critic_lr: float | None = None,

@@ -13,8 +13,14 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
-#: The algorithms with an SB3 twin (class names in ``stable_baselines3``).
-SB3_CLASSES = {"td3": "TD3", "ddpg": "DDPG", "sac": "SAC", "ppo": "PPO"}
+#: The algorithms with a twin in Stable-Baselines3 (or its contrib package), as module.Class.
+SB3_CLASSES = {
+    "td3": "stable_baselines3.TD3",
+    "ddpg": "stable_baselines3.DDPG",
+    "sac": "stable_baselines3.SAC",
+    "crossq": "sb3_contrib.CrossQ",
+    "ppo": "stable_baselines3.PPO",
+}
 
 #: walkers key -> SB3 argument, per algorithm; "-" marks a walkers key with no SB3 argument that
 #: is accepted only at the value given (SB3's own behaviour). Documentation and the checks below.
@@ -58,6 +64,23 @@ MAPPING: dict[str, dict[str, str]] = {
         "tau": "tau",
         "alpha_init": "ent_coef='auto_<alpha_init>'",
         "alpha_lr": "- (null or = lr: SB3's temperature shares the learning rate)",
+        "target_entropy": "target_entropy (null: 'auto', -|A|)",
+        "buffer_size": "buffer_size",
+        "compile": "- (false only)",
+    },
+    "crossq": {
+        "lr": "learning_rate (actor, critics and temperature)",
+        "batch_size": "batch_size",
+        "learning_starts": "learning_starts",
+        "hidden_sizes": "policy_kwargs.net_arch.pi",
+        "critic_hidden_sizes": "policy_kwargs.net_arch.qf",
+        "gamma": "gamma",
+        "adam_betas": "policy_kwargs.optimizer_kwargs.betas (actor and critics)",
+        "policy_delay": "policy_delay",
+        "renorm_momentum": "policy_kwargs.batch_norm_momentum",
+        "renorm_warmup_steps": "policy_kwargs.renorm_warmup_steps",
+        "alpha_init": "ent_coef='auto_<alpha_init>'",
+        "alpha_lr": "- (null or = lr: the temperature shares the learning rate)",
         "target_entropy": "target_entropy (null: 'auto', -|A|)",
         "buffer_size": "buffer_size",
         "compile": "- (false only)",
@@ -126,20 +149,21 @@ def sb3_arguments(algo: str, hp: Mapping) -> dict:
         )
     if hp.get("compile"):
         raise _refuse(algo, "compile", hp["compile"], "false (SB3 runs eagerly)")
-    return {"ppo": _ppo, "sac": _sac}.get(algo, _deterministic_actor_critic)(algo, hp)
+    build = {"ppo": _ppo, "sac": _sac, "crossq": _crossq}
+    return build.get(algo, _deterministic_actor_critic)(algo, hp)
 
 
 def _off_policy_common(hp: Mapping) -> dict:
-    return {
+    common = {
         "learning_rate": hp["lr"],
         "batch_size": hp["batch_size"],
         "learning_starts": hp["learning_starts"],
         "gamma": hp["gamma"],
-        "tau": hp["tau"],
         "buffer_size": hp["buffer_size"],
         "train_freq": 1,
         "gradient_steps": 1,
     }
+    return common | ({"tau": hp["tau"]} if "tau" in hp else {})  # CrossQ has no targets
 
 
 def _deterministic_actor_critic(algo: str, hp: Mapping) -> dict:
@@ -165,15 +189,41 @@ def _deterministic_actor_critic(algo: str, hp: Mapping) -> dict:
     return {"class": SB3_CLASSES[algo], "kwargs": kwargs, "noise": noise, "net_arch": net_arch}
 
 
-def _sac(algo: str, hp: Mapping) -> dict:
+def _soft_actor_critic(algo: str, hp: Mapping) -> dict:
+    """SAC's and CrossQ's arguments: the common ones and the temperature's."""
     if hp.get("alpha_lr") is not None and hp["alpha_lr"] != hp["lr"]:
         raise _refuse(algo, "alpha_lr", hp["alpha_lr"], "null or equal to algo.lr")
     target = hp.get("target_entropy")
-    kwargs = _off_policy_common(hp) | {
+    return _off_policy_common(hp) | {
         "ent_coef": f"auto_{hp['alpha_init']}",
         "target_entropy": "auto" if target is None else float(target),
     }
-    return {"class": "SAC", "kwargs": kwargs, "noise": None, "net_arch": list(hp["hidden_sizes"])}
+
+
+def _sac(algo: str, hp: Mapping) -> dict:
+    kwargs = _soft_actor_critic(algo, hp)
+    return {
+        "class": SB3_CLASSES[algo],
+        "kwargs": kwargs,
+        "noise": None,
+        "net_arch": list(hp["hidden_sizes"]),
+    }
+
+
+def _crossq(algo: str, hp: Mapping) -> dict:
+    kwargs = _soft_actor_critic(algo, hp) | {"policy_delay": hp["policy_delay"]}
+    net_arch = {"pi": list(hp["hidden_sizes"]), "qf": list(hp["critic_hidden_sizes"])}
+    return {
+        "class": SB3_CLASSES[algo],
+        "kwargs": kwargs,
+        "noise": None,
+        "net_arch": net_arch,
+        "policy_kwargs": {
+            "optimizer_kwargs": {"betas": tuple(hp["adam_betas"])},
+            "batch_norm_momentum": hp["renorm_momentum"],
+            "renorm_warmup_steps": hp["renorm_warmup_steps"],
+        },
+    }
 
 
 def _ppo(algo: str, hp: Mapping) -> dict:
@@ -209,7 +259,7 @@ def _ppo(algo: str, hp: Mapping) -> dict:
             "gamma": hp["gamma"],
         }
     return {
-        "class": "PPO",
+        "class": SB3_CLASSES[algo],
         "kwargs": kwargs,
         "lr": hp["lr"],
         "anneal_lr": hp["anneal_lr"],

@@ -11,6 +11,7 @@ SB3 is an optional dependency (``pip install -e '.[sb3]'``): it is imported when
 
 from __future__ import annotations
 
+import importlib
 import io
 import random
 from collections.abc import Mapping, Sequence
@@ -52,6 +53,16 @@ def import_sb3():
     return stable_baselines3
 
 
+def reference_class(path: str) -> type:
+    """The reference library's class ``module.Class`` (sb3-contrib's ships with the ``sb3``
+    extra), or a one-line error saying how to install it."""
+    module, name = path.rsplit(".", 1)
+    try:
+        return getattr(importlib.import_module(module), name)
+    except ImportError:
+        raise ConfigError(f"impl=sb3 needs {module}: {INSTALL_HINT}") from None
+
+
 class SB3Twin(Agent):
     """SB3's twin of walkers algorithm ``algo`` with walkers hyperparameters ``hyperparameters``.
 
@@ -72,7 +83,7 @@ class SB3Twin(Agent):
         self.sb3 = import_sb3()
         self.algo = algo
         self.arguments = sb3_arguments(algo, hyperparameters)
-        self.cls = getattr(self.sb3, self.arguments["class"])
+        self.cls = reference_class(self.arguments["class"])
         self.device = resolve_device(device)
         self.seed = seed
         self.obs_dim = obs_dim
@@ -106,14 +117,14 @@ class SB3Twin(Agent):
     def _objects(self) -> dict:
         """The arguments that are SB3 objects: noise, schedules, activation, optimizer."""
         a = self.arguments
-        out: dict = {"policy_kwargs": {"net_arch": a["net_arch"]}}
+        out: dict = {"policy_kwargs": {"net_arch": a["net_arch"]} | a.get("policy_kwargs", {})}
         n = len(self.action_low)
         if a["noise"] is not None:
             kind, sigma = a["noise"]
             noises = self.sb3.common.noise
             cls = noises.OrnsteinUhlenbeckActionNoise if kind == "ou" else noises.NormalActionNoise
             out["action_noise"] = cls(mean=np.zeros(n), sigma=sigma * np.ones(n))
-        if a["class"] == "PPO":
+        if a["class"].endswith(".PPO"):
             lr = a["lr"]
             out["learning_rate"] = (lambda progress: lr * progress) if a["anneal_lr"] else lr
             out["policy_kwargs"] |= {

@@ -20,6 +20,7 @@ from walkers.agents.hyperparameters import (
     POSITIVE,
     POSITIVE_INT,
     PROBABILITY,
+    Allowed,
     Hyperparameters,
     hp,
     one_of,
@@ -39,8 +40,8 @@ LR_OR_SHARED = or_null(POSITIVE, "lr")
 
 
 @dataclass
-class OffPolicy(Hyperparameters):
-    """What the replay-based actor-critics (TD3, DDPG, SAC) share."""
+class Replay(Hyperparameters):
+    """What the replay-based actor-critics (TD3, DDPG, SAC, CrossQ) share."""
 
     AT_MOST = {"batch_size": ("buffer_size", "")}
 
@@ -55,9 +56,15 @@ class OffPolicy(Hyperparameters):
     )
     hidden_sizes: list[int] = hp([256, 256], LAYERS, "hidden layers of actor and critics")
     gamma: float = hp(0.99, DISCOUNT, "discount")
-    tau: float = hp(0.005, DISCOUNT, "target networks: theta' <- tau * theta + (1 - tau) * theta'")
     buffer_size: int = hp(1_000_000, POSITIVE_INT, "replay buffer capacity (transitions)")
     compile: bool = hp(False, BOOL, COMPILE_DOC)
+
+
+@dataclass
+class OffPolicy(Replay):
+    """TD3, DDPG and SAC: replay and target networks."""
+
+    tau: float = hp(0.005, DISCOUNT, "target networks: theta' <- tau * theta + (1 - tau) * theta'")
 
 
 @dataclass
@@ -151,6 +158,65 @@ class SACHyperparameters(OffPolicy):
         None,
         LR_OR_SHARED,
         "the temperature's learning rate; null = lr (as the paper and SB3)",
+    )
+    target_entropy: float | None = hp(
+        None,
+        or_null(NUMBER, "-|A|"),
+        "the entropy alpha steers towards; null = -|A| (minus the action dimension)",
+    )
+
+
+BETAS = Allowed(
+    lambda v: isinstance(v, list) and len(v) == 2 and all(PROBABILITY.ok(b) and b < 1 for b in v),
+    "two numbers in [0, 1), e.g. [0.5,0.999]",
+)
+
+
+@dataclass
+class CrossQHyperparameters(Replay):
+    """CrossQ (Bhatt, Palenicek et al., ICLR 2024, "CrossQ: Batch Normalization in Deep
+    Reinforcement Learning for Greater Sample Efficiency and Simplicity"): SAC without target
+    networks, Batch Renormalization in actor and critics, one joint critic pass over (s, a) and
+    (s', a'). Defaults are the paper's (critics 2048 wide, lr 1e-3, Adam betas 0.5/0.999, actor
+    every 3rd update) with sb3-contrib's renormalization settings. On a CPU the wide critics
+    cost: critic_hidden_sizes=[256,256] runs at about SAC's speed (README, Speed).
+    Fixed by the algorithm: two critics, the temperature's step with the actor's (before it),
+    no target networks, deterministic evaluation with tanh(mean) in running statistics."""
+
+    AGENT = "walkers.agents.crossq.CrossQ"
+    NAME = "crossq"
+    lr: float = hp(1.0e-3, POSITIVE, "Adam learning rate: actor, critics and temperature")
+    learning_starts: int = hp(
+        5_000,
+        NON_NEGATIVE_INT,
+        "uniform random actions (no updates) for this many env steps (the paper's code: 5000); "
+        "short envs set env.learning_starts",
+        env_key="learning_starts",
+    )
+    hidden_sizes: list[int] = hp([256, 256], LAYERS, "hidden layers of the actor")
+    critic_hidden_sizes: list[int] = hp(
+        [2048, 2048],
+        LAYERS,
+        "hidden layers of each critic (the paper's 2048; sb3-contrib's default 1024;\n"
+        "on a CPU [256,256] keeps SAC's speed: README, Speed)",
+    )
+    adam_betas: list[float] = hp(
+        [0.5, 0.999], BETAS, "Adam (beta1, beta2) of actor and critics (the paper's beta1 0.5)"
+    )
+    policy_delay: int = hp(3, POSITIVE_INT, "critic updates per actor and temperature update")
+    renorm_momentum: float = hp(
+        0.01,
+        PROBABILITY,
+        "Batch Renormalization: running statistics move this fraction towards each batch's",
+    )
+    renorm_warmup_steps: int = hp(
+        100_000,
+        NON_NEGATIVE_INT,
+        "training passes of plain batch statistics before the renormalization's correction",
+    )
+    alpha_init: float = hp(1.0, POSITIVE, "initial entropy temperature alpha (learned from there)")
+    alpha_lr: float | None = hp(
+        None, LR_OR_SHARED, "the temperature's learning rate; null = lr (as sb3-contrib)"
     )
     target_entropy: float | None = hp(
         None,
@@ -337,6 +403,7 @@ SCHEMAS: dict[str, type[Hyperparameters]] = {
         TD3Hyperparameters,
         DDPGHyperparameters,
         SACHyperparameters,
+        CrossQHyperparameters,
         PPOHyperparameters,
         ReinforceHyperparameters,
         DecisionTransformerHyperparameters,

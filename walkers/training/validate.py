@@ -23,7 +23,7 @@ from walkers.agents.hyperparameters import (
 )
 from walkers.agents.sb3_arguments import NotExpressible, sb3_arguments
 from walkers.agents.sb3_twin import import_sb3
-from walkers.agents.schemas import schema_of
+from walkers.agents.schemas import SCHEMAS, schema_of
 from walkers.errors import ConfigError
 from walkers.training import settings
 from walkers.training.provenance import worker_name
@@ -58,9 +58,10 @@ def _check_population(cfg: DictConfig) -> None:
     if k == 1:
         return
     if not hasattr(get_class(cfg.algo._target_), "act_population"):
+        able = [n for n, s in SCHEMAS.items() if hasattr(get_class(s.AGENT), "act_population")]
         raise ConfigError(
             f"population={k} is not allowed with algo={cfg.algo.name}: "
-            "only td3, ddpg and sac train seed populations"
+            f"only {', '.join(able)} train seed populations"
         )
     for key, unsupported in (("video_every", cfg.video_every), ("a sweep", cfg.trial.id)):
         if unsupported:

@@ -130,7 +130,7 @@ class SAC(SoftActorCritic):
         return metrics | temperature_metrics | self.record_health(critic_bad, delayed_bad=actor_bad)
 
     def critic_loss(self, b: Batch, noise: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Per member ``(K,)``: sum_j N^-1 sum (y - Q_j(s, a))^2 with the soft target
+        """Per member ``(K,)``: J_Q = 1/2 sum_j N^-1 sum (y - Q_j(s, a))^2 with the soft target
         y = r + gamma (1 - terminated) (min_j Q'_j(s', a') - alpha log pi(a'|s')),
         a' ~ pi(.|s') with eps = ``noise``; and mean Q ``(K,)``."""
         with torch.no_grad():
@@ -139,7 +139,7 @@ class SAC(SoftActorCritic):
             alpha = self.temperature().unsqueeze(-1)
             y = b.reward + self.gamma * (1.0 - b.terminated) * (next_q - alpha * next_log_pi)
         q = self.q_values(self.critic, b.obs, b.action)
-        return self.critics_regression(q, y), q.detach().mean(dim=(1, 2))
+        return 0.5 * self.critics_regression(q, y), q.detach().mean(dim=(1, 2))
 
     def actor_loss(
         self, obs: torch.Tensor, noise: torch.Tensor

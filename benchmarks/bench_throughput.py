@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import multiprocessing as mp
 import time
+from functools import partial
 
 import gymnasium as gym
 import numpy as np
@@ -31,6 +32,7 @@ import torch
 from rounds import alternate, print_table
 
 from walkers.agents.base import Transition
+from walkers.agents.crossq import CrossQ
 from walkers.agents.ddpg import DDPG
 from walkers.agents.factory import defaults_for
 from walkers.agents.ppo import PPO
@@ -43,6 +45,9 @@ from walkers.training.envs import env_spaces
 ENV_ID, HIDDEN, BATCH, WARMUP = "Walker2d-v5", 256, 256, 1_000
 PPO_ROLLOUT = 2048  # PPO's reference rollout: a PPO round is one rollout and its update
 PPO_ROWS = ("walkers PPO", "SB3 PPO")
+#: CrossQ's critic widths on a CPU: the paper's 2048, sb3-contrib's 1024, and narrower ones
+CROSSQ_WIDTHS = (2048, 1024, 512, 256)
+CROSSQ_ROUND = 100  # env steps per round of the CrossQ rows (a 2048-wide update takes ~0.1 s)
 
 
 class WalkersLoop:
@@ -148,6 +153,34 @@ class SB3Loop:
         self.model.learn(total_timesteps=steps, reset_num_timesteps=False)
 
 
+def walkers_crossq(width: int) -> WalkersLoop:
+    """walkers' CrossQ at its defaults (the paper's) with critics ``width`` wide."""
+    loop = WalkersLoop(
+        CrossQ, critic_hidden_sizes=[width, width], batch_size=BATCH, learning_starts=WARMUP
+    )
+    loop.round_steps = CROSSQ_ROUND
+    return loop
+
+
+class SB3CrossQLoop(SB3Loop):
+    """sb3-contrib's CrossQ at the same settings (its defaults but the critics' width)."""
+
+    round_steps = CROSSQ_ROUND
+
+    def __init__(self, width: int):
+        from sb3_contrib import CrossQ as ContribCrossQ
+
+        self.model = ContribCrossQ(
+            "MlpPolicy",
+            gym.make(ENV_ID),
+            learning_starts=WARMUP,
+            batch_size=BATCH,
+            policy_kwargs={"net_arch": {"pi": [HIDDEN, HIDDEN], "qf": [width, width]}},
+            seed=0,
+            device="cpu",
+        )
+
+
 def walkers_ppo() -> WalkersLoop:
     """walkers' PPO at its defaults (conf/algo/ppo.yaml: the reference settings)."""
     loop = WalkersLoop(PPO)
@@ -196,6 +229,7 @@ def contenders(only: str | None = None) -> dict:
         ),
         "walkers DDPG": lambda: WalkersLoop(DDPG, hidden_sizes=[HIDDEN, HIDDEN], **common),
         "walkers SAC": lambda: WalkersLoop(SAC, hidden_sizes=[HIDDEN, HIDDEN], **common),
+        **{f"walkers CrossQ {width}": partial(walkers_crossq, width) for width in CROSSQ_WIDTHS},
         "walkers REINFORCE": lambda: WalkersLoop(Reinforce, hidden_sizes=[HIDDEN, HIDDEN]),
         "walkers PPO": walkers_ppo,
         # population=K: the aggregate env steps/s of K seeds trained together
@@ -212,11 +246,18 @@ def contenders(only: str | None = None) -> dict:
             "SB3 TD3": lambda: SB3Loop("TD3"),
             "SB3 DDPG": lambda: SB3Loop("DDPG"),
             "SB3 SAC": lambda: SB3Loop("SAC"),  # ent_coef="auto": the learned temperature
+            "sb3-contrib CrossQ 2048": partial(SB3CrossQLoop, 2048),
+            "sb3-contrib CrossQ 256": partial(SB3CrossQLoop, 256),
         }
         loops["SB3 PPO"] = SB3PPOLoop
     except ImportError:
         print("stable-baselines3 not installed: SB3 rows skipped (pip install -e '.[sb3]')")
-    return {name: make() for name, make in loops.items() if only is None or only in name}
+    wanted = None if only is None else only.split(",")
+    return {
+        name: make()
+        for name, make in loops.items()
+        if wanted is None or any(part in name for part in wanted)
+    }
 
 
 def matmul_gflops(n: int = 256, reps: int = 200) -> float:
@@ -246,7 +287,9 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--reps", type=int, default=4, help="alternating rounds")
     parser.add_argument("--steps", type=int, default=1_000, help="env steps per round")
-    parser.add_argument("--only", help="the contenders whose name contains this (e.g. PPO)")
+    parser.add_argument(
+        "--only", help="the contenders whose name contains one of these (e.g. PPO, or CrossQ,SAC)"
+    )
     args = parser.parse_args()
     loops = contenders(args.only)
     for loop in loops.values():
@@ -260,6 +303,14 @@ def main():
 
     sps = alternate(loops, steps_per_second, args.reps)
     on_policy = {name: sps.pop(name) for name in PPO_ROWS if name in sps}
+    crossq = {name: sps.pop(name) for name in list(sps) if "CrossQ" in name}
+    if crossq:
+        crossq |= {name: sps[name] for name in ("walkers SAC", "SB3 SAC") if name in sps}
+        print(
+            f"\n{ENV_ID}, CrossQ by critic width (actor {HIDDEN}-{HIDDEN}, batch {BATCH}) beside "
+            f"SAC, {torch.get_num_threads()} threads, {args.reps} rounds x {CROSSQ_ROUND} steps"
+        )
+        print_table(crossq, "env steps/s", baseline="walkers SAC")
     if sps:
         print(
             f"\n{ENV_ID}, learning phase, {HIDDEN}-{HIDDEN}, batch {BATCH}, 1 gradient step per "

@@ -36,12 +36,18 @@ QUICK = {
     "td3": ["algo.learning_starts=100", "algo.batch_size=32"],
     "ddpg": ["algo.learning_starts=100", "algo.batch_size=32"],
     "sac": ["algo.learning_starts=100", "algo.batch_size=32"],
+    "crossq": [
+        "algo.learning_starts=100",
+        "algo.batch_size=32",
+        "algo.critic_hidden_sizes=[64,64]",
+    ],
     "ppo": ["algo.n_steps=200", "algo.n_minibatches=4", "algo.n_epochs=2"],
 }
 LOSSES = {
     "td3": {"loss/critic", "loss/actor"},
     "ddpg": {"loss/critic", "loss/actor"},
     "sac": {"loss/critic", "loss/actor", "loss/alpha", "train/alpha"},
+    "crossq": {"loss/critic", "loss/actor", "loss/alpha", "train/alpha"},
     "ppo": {"loss/policy", "loss/value", "train/approx_kl", "train/entropy"},
 }
 
@@ -52,7 +58,7 @@ def tiny(algo: str, store: dict, *more: str) -> list[str]:
 
 @pytest.fixture(scope="module")
 def twins(tmp_path_factory):
-    """A tiny impl=sb3 run of each of the four twins, and its walkers counterpart for two."""
+    """A tiny impl=sb3 run of each of the five twins, and its walkers counterpart for two."""
     store = new_store(tmp_path_factory.mktemp("sb3"))
     for algo in QUICK:
         for seed in (0, 1) if algo in ("td3", "ppo") else (0,):
@@ -178,6 +184,23 @@ def test_td3_maps_onto_sb3s_td3():
     assert np.allclose(model.action_noise._sigma, hp.exploration_noise)
 
 
+def test_crossq_maps_onto_sb3_contribs_crossq():
+    hp, model, _ = twin("crossq", "algo.critic_hidden_sizes=[96,80]", "algo.renorm_warmup_steps=7")
+    from sb3_contrib import CrossQ
+    from sb3_contrib.common.torch_layers import BatchRenorm
+
+    assert isinstance(model, CrossQ)
+    assert linear_widths(model.critic) == [96, 80, 1, 96, 80, 1]  # twin critics, no targets
+    assert linear_widths(model.actor) == [256, 256, 1, 1]  # Pendulum: mean and log-std heads
+    for optimizer in (model.actor.optimizer, model.critic.optimizer):
+        group = optimizer.param_groups[0]
+        assert (group["lr"], group["betas"]) == (hp.lr, tuple(hp.adam_betas))
+    renorms = [m for m in model.critic.modules() if isinstance(m, BatchRenorm)]
+    assert renorms and {(m.momentum, m.warmup_steps) for m in renorms} == {(0.01, 7)}
+    assert (model.policy_delay, model.batch_size, model.gamma) == (3, hp.batch_size, hp.gamma)
+    assert model.target_entropy == -1.0 and model.learning_starts == hp.learning_starts
+
+
 def test_ddpg_maps_onto_sb3s_ddpg_with_ou_noise():
     _, model, _ = twin(
         "ddpg", "algo.noise_type=ou", "algo.hidden_sizes=[32,32]", "algo.critic_hidden_sizes=[48]"
@@ -220,8 +243,11 @@ def test_ppo_maps_onto_sb3s_ppo_with_vecnormalize():
 @pytest.mark.parametrize(
     "overrides, names",
     [
-        (["algo=reinforce", "impl=sb3"], ["impl=sb3", "algo=reinforce", "td3, ddpg, sac, ppo"]),
-        (["algo=dt", "impl=sb3", "dataset=x"], ["algo=dt", "td3, ddpg, sac, ppo"]),
+        (
+            ["algo=reinforce", "impl=sb3"],
+            ["impl=sb3", "algo=reinforce", "td3, ddpg, sac, crossq, ppo"],
+        ),
+        (["algo=dt", "impl=sb3", "dataset=x"], ["algo=dt", "td3, ddpg, sac, crossq, ppo"]),
         (["algo=ppo", "impl=sb3", "algo.target_kl=0.02"], ["algo.target_kl=0.02", "null"]),
         (
             ["algo=ddpg", "impl=sb3", "algo.critic_architecture=layernorm_branch"],

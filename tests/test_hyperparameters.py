@@ -184,3 +184,12 @@ def test_the_checks_follow_the_class_built_not_the_name():
     cfg = compose_cfg(["algo=td3", "env=pendulum", "algo.name=my_td3", "algo.tau=2"])
     with pytest.raises(ConfigError, match=r"algo.tau=2 is not allowed"):
         validate(cfg)
+
+
+def test_the_train_menu_lists_every_declared_algorithm():
+    """conf/train.yaml's defaults list names the algorithms (a hand-written comment): all."""
+    line = next(
+        x for x in (PROJECT_ROOT / "conf/train.yaml").read_text().splitlines() if "- algo:" in x
+    )
+    listed = {name.strip() for name in line.split("#")[1].split("(")[0].split("|")}
+    assert listed == set(SCHEMAS)

@@ -73,7 +73,7 @@ class ActorCritic(Agent):
         critic_lr: float | None = None,
         critic_architecture: str | None = None,
         critic_hidden_sizes: Sequence[int] | None = None,
-        adam_betas: Sequence[float] = (0.9, 0.999),
+        adam_betas: Sequence[float] | None = None,  # None: Adam's own (0.9, 0.999)
         population: int = 1,
         compile: bool,
         device: str = "cpu",
@@ -96,7 +96,7 @@ class ActorCritic(Agent):
         self.critic = self.build_critic(
             critic_architecture or "mlp", obs_dim, act_dim, critic_hidden
         ).to(self.device)
-        betas = tuple(adam_betas)
+        betas = (0.9, 0.999) if adam_betas is None else tuple(adam_betas)
         self.actor_optimizer = torch.optim.Adam(
             self.actor.parameters(), lr=actor_lr or lr, betas=betas, fused=True
         )

@@ -37,7 +37,7 @@ def yaml_value(value) -> str:
     return str(value)
 
 
-def _entry(key: str, value: str, doc: str, indent: str = "") -> list[str]:
+def entry(key: str, value: str, doc: str, indent: str = "") -> list[str]:
     head = f"{indent}{key}: {value}"
     lines = doc.split("\n")
     first = f"{head.ljust(COMMENT_COLUMN - 2)}  # {lines[0]}"
@@ -62,9 +62,9 @@ def menu(schema: type[Hyperparameters]) -> str:
             value = f"${{oc.select:env.{f.metadata['env_key']},{fallback}}}"
         else:
             value = yaml_value(default)
-        lines += _entry(f.name, value, f.metadata["doc"], indent)
+        lines += entry(f.name, value, f.metadata["doc"], indent)
     for key, (value, doc) in schema.RUN_SETTINGS.items():
-        lines += _entry(key, yaml_value(value), doc)
+        lines += entry(key, yaml_value(value), doc)
     return "\n".join(lines) + "\n"
 
 

@@ -27,12 +27,16 @@ from omegaconf import DictConfig, OmegaConf
 
 from walkers import PROJECT_ROOT
 from walkers.agents.hyperparameters import NON_NEGATIVE_INT, POSITIVE_INT, Allowed, hp, or_null
-from walkers.agents.menus import _entry, yaml_value  # the algorithm menus' layout
+from walkers.agents.menus import entry, yaml_value  # the algorithm menus' layout
+from walkers.agents.sb3_arguments import SB3_CLASSES
+from walkers.agents.schemas import SCHEMAS, Replay
 from walkers.metrics import METRIC_DIRECTIONS
 
 OPTIMIZABLE_METRICS = tuple(METRIC_DIRECTIONS)  # every metric a sweep can optimize
 DEVICES = ("auto", "cpu", "cuda")
 IMPLEMENTATIONS = ("walkers", "sb3")
+#: the algorithms that train seed populations: the replay-based actor-critics
+REPLAY_BASED = [name for name, schema in SCHEMAS.items() if issubclass(schema, Replay)]
 
 
 def _listed(choices) -> Allowed:
@@ -53,13 +57,13 @@ class RunSettings:
         "walkers",
         _listed(IMPLEMENTATIONS),
         f"whose implementation trains: {' | '.join(IMPLEMENTATIONS)} (Stable-Baselines3's twin of "
-        "td3/ddpg/sac/ppo; pip install -e '.[sb3]')",
+        f"{'/'.join(SB3_CLASSES)}; pip install -e '.[sb3]')",
     )
     population: int = hp(
         1,
         POSITIVE_INT,
-        "td3/ddpg/sac: train seeds seed..seed+K-1 together in one process (stacked networks), "
-        "one MLflow run each",
+        f"{'/'.join(REPLAY_BASED)}: train seeds seed..seed+K-1 together in one process (stacked "
+        "networks), one MLflow run each",
     )
     total_steps: int = hp(1_000_000, POSITIVE_INT, "environment steps to train for")
     eval_every: int = hp(5_000, POSITIVE_INT, "env steps between evaluations")
@@ -161,7 +165,7 @@ def train_yaml(text: str) -> str:
     block = [
         line
         for f in fields(RunSettings)
-        for line in _entry(f.name, yaml_value(getattr(defaults, f.name)), f.metadata["doc"])
+        for line in entry(f.name, yaml_value(getattr(defaults, f.name)), f.metadata["doc"])
     ]
     return "\n".join(lines[:start] + block + lines[end:])
 

@@ -71,7 +71,7 @@ stack: $(STAMP)  ## PostgreSQL + an MLflow server on it for a team or a cluster,
 bench: $(STAMP)  ## benchmarks: the TD3 update vs a plain eager implementation, side by side
 	$(PY) benchmarks/bench_update.py $(ARGS)
 
-bench-throughput: $(STAMP)  ## env steps/s of walkers TD3/DDPG/SAC/PPO/REINFORCE vs Stable-Baselines3 on Walker2d
+bench-throughput: $(STAMP)  ## env steps/s of walkers TD3/DDPG/SAC/CrossQ/PPO/REINFORCE vs Stable-Baselines3 (and sb3-contrib) on Walker2d
 	$(PY) benchmarks/bench_throughput.py $(ARGS)
 
 bench-learning: $(STAMP)  ## walkers vs its Stable-Baselines3 twins through the platform: impl=walkers,sb3 x seeds, then a group_by=impl report (BENCH_ALGOS=td3,sac BENCH_ENV=walker2d BENCH_STEPS=100000 BENCH_SEEDS=3; quick: BENCH_ENV=pendulum BENCH_STEPS=15000)

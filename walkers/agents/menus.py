@@ -83,9 +83,15 @@ def write_menus(conf_dir=None, check: bool = False) -> list[str]:
     return stale
 
 
-if __name__ == "__main__":  # make menus
-    checking = "--check" in sys.argv[1:]
-    stale = write_menus(check=checking)
+def main(write, source: str, argv: list[str]) -> int:
+    """``make menus``: ``write`` what is written from ``source``; with ``--check``, write nothing
+    and exit 1 if something is out of step."""
+    checking = "--check" in argv
+    stale = write(check=checking)
     for path in stale:
-        print(f"{'out of step with walkers/agents/schemas.py' if checking else 'wrote'}: {path}")
-    sys.exit(1 if checking and stale else 0)
+        print(f"{f'out of step with {source}' if checking else 'wrote'}: {path}")
+    return 1 if checking and stale else 0
+
+
+if __name__ == "__main__":  # make menus
+    sys.exit(main(write_menus, "walkers/agents/schemas.py", sys.argv[1:]))

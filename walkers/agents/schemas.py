@@ -35,6 +35,18 @@ COMPILE_DOC = (
     "launch-bound small updates); on CPU no measurable gain (make bench)"
 )
 
+
+def warmup(default: int, source: str = ""):
+    """``learning_starts``: the uniform random warm-up of a replay-based algorithm."""
+    return hp(
+        default,
+        NON_NEGATIVE_INT,
+        f"uniform random actions (no updates) for this many env steps{source}; short envs set "
+        "env.learning_starts",
+        env_key="learning_starts",
+    )
+
+
 #: A learning rate of its own, or null to share ``lr``.
 LR_OR_SHARED = or_null(POSITIVE, "lr")
 
@@ -47,13 +59,7 @@ class Replay(Hyperparameters):
 
     lr: float = hp(3.0e-4, POSITIVE, "Adam learning rate, actor and critics")
     batch_size: int = hp(256, POSITIVE_INT, "transitions per gradient step")
-    learning_starts: int = hp(
-        25_000,
-        NON_NEGATIVE_INT,
-        "uniform random actions (no updates) for this many env steps; short envs set "
-        "env.learning_starts",
-        env_key="learning_starts",
-    )
+    learning_starts: int = warmup(25_000)
     hidden_sizes: list[int] = hp([256, 256], LAYERS, "hidden layers of actor and critics")
     gamma: float = hp(0.99, DISCOUNT, "discount")
     buffer_size: int = hp(1_000_000, POSITIVE_INT, "replay buffer capacity (transitions)")
@@ -186,13 +192,7 @@ class CrossQHyperparameters(Replay):
     AGENT = "walkers.agents.crossq.CrossQ"
     NAME = "crossq"
     lr: float = hp(1.0e-3, POSITIVE, "Adam learning rate: actor, critics and temperature")
-    learning_starts: int = hp(
-        5_000,
-        NON_NEGATIVE_INT,
-        "uniform random actions (no updates) for this many env steps (the paper's code: 5000); "
-        "short envs set env.learning_starts",
-        env_key="learning_starts",
-    )
+    learning_starts: int = warmup(5_000, " (the paper's code: 5000)")
     hidden_sizes: list[int] = hp([256, 256], LAYERS, "hidden layers of the actor")
     critic_hidden_sizes: list[int] = hp(
         [2048, 2048],

@@ -26,6 +26,7 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 from walkers import PROJECT_ROOT
+from walkers.agents import menus
 from walkers.agents.hyperparameters import NON_NEGATIVE_INT, POSITIVE_INT, Allowed, hp, or_null
 from walkers.agents.menus import entry, yaml_value  # the algorithm menus' layout
 from walkers.agents.sb3_arguments import SB3_CLASSES
@@ -184,8 +185,4 @@ def write_train_yaml(conf_dir=None, check: bool = False) -> list[str]:
 
 
 if __name__ == "__main__":  # make menus
-    checking = "--check" in sys.argv[1:]
-    stale = write_train_yaml(check=checking)
-    for path in stale:
-        print(f"{'out of step with walkers/training/settings.py' if checking else 'wrote'}: {path}")
-    sys.exit(1 if checking and stale else 0)
+    sys.exit(menus.main(write_train_yaml, "walkers/training/settings.py", sys.argv[1:]))

@@ -40,9 +40,9 @@ renormalization pass counts exactly. Proven:
 - Each twin has a test changing one reward on SB3's side only: the weights then part, so the
   comparisons are not vacuous.
 
-Known divergence, pinned by a strict xfail: walkers' Batch Renormalization gives a NaN input
-gradient in its warm-up for a feature constant over the batch (a ReLU unit off for the whole
-batch), where sb3-contrib's is finite (test_crossq_renormalization_gradient_for_a_constant_...).
+A feature constant over the batch (a ReLU unit off for the whole batch) gets a finite gradient
+in the renormalization's warm-up on both sides (test_crossq_renormalization_gradient_for_a_
+constant_...; walkers once picked its branch so that the unpicked one's gradient was NaN).
 """
 
 from __future__ import annotations
@@ -709,16 +709,15 @@ def test_crossq_parity_is_not_vacuous(monkeypatch):
     )
 
 
-@pytest.mark.xfail(strict=True, reason="walkers' renormalization: NaN gradient in the warm-up")
 def test_crossq_renormalization_gradient_for_a_constant_feature_matches_sb3_contrib():
     """A feature constant over the batch (a ReLU unit off for every sample of the batch: batch
     variance 0), in the warm-up. sb3-contrib normalizes with the batch statistics alone
     (torch_layers.py, BatchRenorm.forward: the ``else`` of ``if self.steps > warmup_steps``),
-    its input gradient finite. walkers computes the corrected statistics too and picks with
-    torch.where (renorm.py, EnsembleBatchRenorm._training_statistics): the unpicked branch's
-    zero gradient through ``batch_var.sqrt()`` at 0 is 0 / 0 = NaN, which reaches that
-    feature's input gradient for every sample (through ``batch_var``), so every weight gradient
-    before it, and walkers' guard skips the whole step. (Past the warm-up both sides' gradients
+    its input gradient finite. walkers computes both branches and picks with torch.where
+    (renorm.py, EnsembleBatchRenorm._training_statistics), so the unpicked branch must not make
+    a NaN of its zero gradient (sqrt's at a zero variance): it takes the square root of 1 there.
+    Before that fix the NaN reached every weight gradient and the guard skipped the step.
+    (Past the warm-up both sides' gradients
     are NaN/inf: the corrected branch divides by that sqrt's 0 on both.)"""
     pytest.importorskip("sb3_contrib")
     from sb3_contrib.common.torch_layers import BatchRenorm1d

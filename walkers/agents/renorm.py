@@ -64,10 +64,13 @@ class EnsembleBatchRenorm(nn.Module):
         with torch.no_grad():
             r = ((batch_var + self.eps).sqrt() / running_std).clamp(1 / self.R_MAX, self.R_MAX)
             d = ((batch_mean - self.running_mean) / running_std).clamp(-self.D_MAX, self.D_MAX)
-        renorm_mean = batch_mean - d * batch_var.sqrt() / r
-        renorm_var = batch_var / r.pow(2)
-        # a device-side choice: no host sync on the step counter
+        # a device-side choice of branch: no host sync on the step counter. The branch not taken
+        # still gets a zero gradient: its variance is 1 then, so sqrt's gradient at a constant
+        # feature's zero variance (0 * inf = NaN) never reaches the weights
         past_warmup = (self.steps > self.warmup_steps).view(-1, 1, 1)
+        var_if_past = torch.where(past_warmup, batch_var, torch.ones_like(batch_var))
+        renorm_mean = batch_mean - d * var_if_past.sqrt() / r
+        renorm_var = var_if_past / r.pow(2)
         mean = torch.where(past_warmup, renorm_mean, batch_mean)
         var = torch.where(past_warmup, renorm_var, batch_var)
         with torch.no_grad():

@@ -10,9 +10,10 @@ Each algorithm owns its update, written in its paper's order in its own module:
 
 This core holds only what they share, none of it particular to one algorithm: the actor and
 critic ensembles and their Adam optimizers, the replay buffers and the uniform random warm-up,
-acting, one mini-batch per member (:meth:`ActorCritic.sample`), the NaN/inf guard
-(:meth:`ActorCritic.step`), target networks for those that have them (:meth:`target_of`,
-:func:`~walkers.agents.networks.soft_update`), ``compile``, populations and checkpoints.
+acting, one mini-batch per member (:meth:`ActorCritic.sample`), the NaN/inf guard's counters
+(the steps themselves go through :func:`~walkers.agents.health.guarded_step`), target networks
+for those that have them (:meth:`target_of`, :func:`~walkers.agents.networks.soft_update`),
+``compile``, populations and checkpoints.
 
 Every network is an ensemble with a leading *member* dimension: a single agent is a population of
 one, ``population=K`` trains K independent seeds (``seed, seed + 1, ...``) with one batched
@@ -35,7 +36,7 @@ from torch import nn
 
 from walkers.agents import population as members_io
 from walkers.agents.base import Agent, Transition, resolve_device
-from walkers.agents.health import NonFiniteGuard, guarded_step
+from walkers.agents.health import NonFiniteGuard
 from walkers.agents.networks import EnsembleActor, make_critic
 from walkers.agents.noise import GaussianNoise
 from walkers.agents.population import Member
@@ -200,18 +201,6 @@ class ActorCritic(Agent):
         """The random numbers of one update, for the critic loss and the actor loss: drawn
         outside them so a compiled update draws the same numbers as eager."""
         raise NotImplementedError
-
-    @staticmethod
-    def step(
-        optimizer: torch.optim.Optimizer,
-        member_loss: torch.Tensor,
-        copies: int = 1,
-        also_bad: torch.Tensor | None = None,
-    ) -> torch.Tensor:
-        """One optimizer step on the per-member losses ``(K,)``, skipping the members whose loss
-        or gradient is NaN/inf, or who are ``also_bad`` (``health.guarded_step``; ``copies``:
-        parameter members per agent member, e.g. its critics). Returns the skipped members."""
-        return guarded_step(optimizer, member_loss, copies, also_bad=also_bad)
 
     def record_health(
         self, bad: torch.Tensor, delayed_bad: torch.Tensor | None

@@ -36,6 +36,7 @@ from functools import partial
 import torch
 
 from walkers.agents.actor_critic import frozen, logged
+from walkers.agents.health import guarded_step
 from walkers.agents.renorm import RenormCriticEnsemble, RenormGaussianActor, batch_statistics
 from walkers.agents.sac import SoftActorCritic
 from walkers.data.replay import Batch
@@ -84,7 +85,7 @@ class CrossQ(SoftActorCritic):
         alpha = self.temperature().unsqueeze(-1)  # this update's, before the temperature's step
         with batch_statistics(self.critic):  # the joint pass's statistics, which move
             critic_loss, q_mean = self.critic_loss(b, target_noise, alpha)
-        critic_bad = self.step(self.critic_optimizer, critic_loss, self.num_critics)
+        critic_bad = guarded_step(self.critic_optimizer, critic_loss, self.num_critics)
         metrics = {"loss/critic": logged(critic_loss), "train/q_mean": logged(q_mean)}
         actor_bad = None  # the delayed step's verdict, when it runs
         if self.num_updates % self.policy_delay == 0:
@@ -93,7 +94,7 @@ class CrossQ(SoftActorCritic):
             metrics |= self.temperature_step(log_pi.detach(), skip=critic_bad)
             with frozen(self.critic):
                 actor_loss = self.actor_loss(b.obs, action, log_pi, alpha)
-            actor_bad = self.step(self.actor_optimizer, actor_loss, also_bad=critic_bad)
+            actor_bad = guarded_step(self.actor_optimizer, actor_loss, 1, also_bad=critic_bad)
             metrics["loss/actor"] = logged(actor_loss)
         return metrics | self.record_health(critic_bad, delayed_bad=actor_bad)
 

@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 from walkers.agents.actor_critic import ActorCritic, frozen, logged
+from walkers.agents.health import guarded_step
 from walkers.agents.networks import EnsembleGaussianActor, Temperature, soft_update
 from walkers.agents.noise import GaussianNoise
 from walkers.data.replay import Batch
@@ -81,7 +82,7 @@ class SoftActorCritic(ActorCritic):
         """The temperature's step on J(alpha) for log pi(a|s) ``(K, N)`` of the policy's samples,
         skipping the members in ``skip``; its metrics."""
         alpha_loss = self.temperature_loss(log_pi)
-        self.step(self.alpha_optimizer, alpha_loss, also_bad=skip)
+        guarded_step(self.alpha_optimizer, alpha_loss, 1, also_bad=skip)
         return {
             "loss/alpha": alpha_loss.detach(),
             "train/alpha": self.temperature(),
@@ -116,10 +117,10 @@ class SAC(SoftActorCritic):
         b = self.sample()
         target_noise, actor_noise = self.update_noise(b)
         critic_loss, q_mean = self.critic_loss(b, target_noise)
-        critic_bad = self.step(self.critic_optimizer, critic_loss, self.num_critics)
+        critic_bad = guarded_step(self.critic_optimizer, critic_loss, self.num_critics)
         with frozen(self.critic):
             actor_loss, log_pi = self.actor_loss(b.obs, actor_noise)
-        actor_bad = self.step(self.actor_optimizer, actor_loss, also_bad=critic_bad)
+        actor_bad = guarded_step(self.actor_optimizer, actor_loss, 1, also_bad=critic_bad)
         temperature_metrics = self.temperature_step(log_pi, skip=actor_bad)
         soft_update(self.critic_target, self.critic, self.tau)
         metrics = {

@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 from walkers.agents.actor_critic import ActorCritic, frozen, logged
+from walkers.agents.health import guarded_step
 from walkers.agents.networks import soft_update
 from walkers.agents.noise import NOISE_TYPES, GaussianNoise
 from walkers.data.replay import Batch
@@ -101,7 +102,7 @@ class TD3(ActorCritic):
         b = self.sample()
         smoothing_noise, _ = self.update_noise(b)
         critic_loss, q_mean = self.critic_loss(b, smoothing_noise)
-        critic_bad = self.step(self.critic_optimizer, critic_loss, self.num_critics)
+        critic_bad = guarded_step(self.critic_optimizer, critic_loss, self.num_critics)
         metrics = {"loss/critic": logged(critic_loss), "train/q_mean": logged(q_mean)}
         actor_bad = None  # the delayed step's verdict, when it runs
         if self.num_updates % self.policy_delay == 0:
@@ -109,7 +110,7 @@ class TD3(ActorCritic):
                 actor_loss = self.actor_loss(b.obs)
             # critic_bad, not the critic loss: under CUDA graphs the actor-loss run has already
             # reclaimed the critic-loss run's outputs
-            actor_bad = self.step(self.actor_optimizer, actor_loss, also_bad=critic_bad)
+            actor_bad = guarded_step(self.actor_optimizer, actor_loss, 1, also_bad=critic_bad)
             soft_update(self.critic_target, self.critic, self.tau)
             soft_update(self.actor_target, self.actor, self.tau)
             metrics["loss/actor"] = logged(actor_loss)

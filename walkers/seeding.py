@@ -15,6 +15,7 @@ same at every evaluation, so evaluations are comparable across checkpoints).
 
 from __future__ import annotations
 
+import hashlib
 import logging
 
 import gymnasium as gym
@@ -50,6 +51,25 @@ def torch_generator(seed: int, stream: str, device: torch.device | str = "cpu") 
     generator = torch.Generator(device=device)
     generator.manual_seed(stream_seeds(seed, stream)[0])
     return generator
+
+
+def restore_generator(generator: torch.Generator, saved: torch.Tensor, what: str) -> None:
+    """Set ``generator`` to a checkpoint's state of it, where that was saved on the same kind of
+    device. A CPU and a CUDA generator's states differ in size and layout: a run trained on a GPU
+    and loaded on a CPU (or back) goes on with a stream seeded from the saved state, so loading
+    the same checkpoint twice still draws the same numbers, and a warning says they differ from
+    the ones the run would have drawn."""
+    try:
+        generator.set_state(saved)
+    except RuntimeError:
+        digest = hashlib.sha256(saved.cpu().numpy().tobytes()).digest()
+        generator.manual_seed(int.from_bytes(digest[:8], "little"))
+        log.warning(
+            "%s was saved on another kind of device than %s: it goes on with a stream seeded "
+            "from the saved one, so its draws differ from the ones the run would have made",
+            what,
+            generator.device.type,
+        )
 
 
 def eval_start_seeds(seed: int, episodes: int) -> list[int]:

@@ -47,7 +47,7 @@ from walkers.agents.health import NonFiniteGuard, guarded_agent_step
 from walkers.agents.normalization import ObservationNormalizer, RewardScaler
 from walkers.agents.policies import GaussianPolicy, orthogonal_mlp
 from walkers.data.rollouts import Rollout, gae
-from walkers.seeding import torch_generator
+from walkers.seeding import restore_generator, torch_generator
 
 #: Run tag set when a resumed run's checkpoint did not hold the unfinished rollout.
 ROLLOUT_RESTART_TAG = "walkers.rollout_restart"
@@ -316,8 +316,10 @@ class PPO(Agent):
         self.reward_scaler.load_state_dict(state["reward_scaler"])
         self.steps, self.num_updates = state["steps"], state["num_updates"]
         self.guard.load_state_dict(state["guard"])
-        self.generator.set_state(state["generator"])
-        self.minibatch_generator.set_state(state["minibatch_generator"])
+        restore_generator(self.generator, state["generator"], "PPO's action sampler")
+        restore_generator(
+            self.minibatch_generator, state["minibatch_generator"], "PPO's minibatch shuffler"
+        )
         # A resumed run starts a new episode (the interrupted one cannot be continued): the
         # rollout's last episode is cut there, a truncation that bootstraps from V(s').
         self.rollout = Rollout()

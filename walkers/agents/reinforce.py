@@ -36,7 +36,7 @@ from walkers.agents.health import NonFiniteGuard, guarded_agent_step
 from walkers.agents.networks import mlp
 from walkers.agents.policies import GaussianPolicy
 from walkers.data.rollouts import Rollout, returns_to_go
-from walkers.seeding import torch_generator
+from walkers.seeding import restore_generator, torch_generator
 
 
 class Reinforce(Agent):
@@ -167,7 +167,7 @@ class Reinforce(Agent):
         self.optimizer.load_state_dict(state["optimizer"])
         self.steps = state["steps"]
         self.guard.load_state_dict(state["guard"])
-        self.generator.set_state(state["generator"])
+        restore_generator(self.generator, state["generator"], "REINFORCE's action sampler")
         if self.value is not None:
             self.value.load_state_dict(state["value"])
             self.value_optimizer.load_state_dict(state["value_optimizer"])

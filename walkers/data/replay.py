@@ -8,6 +8,7 @@ import numpy as np
 import torch
 
 from walkers.data.episodes import Episode
+from walkers.seeding import restore_generator
 
 
 class Batch(NamedTuple):
@@ -82,7 +83,7 @@ class ReplayBuffer:
         return state
 
     def load_state_dict(self, state: dict) -> None:
-        self.generator.set_state(state["generator"])
+        restore_generator(self.generator, state["generator"], "the replay buffer's sampler")
         if "data" in state:
             for name, values in state["data"].items():
                 getattr(self, name)[: len(values)] = values.to(self.device)

@@ -8,6 +8,7 @@ import numpy as np
 import torch
 
 from walkers.data.episodes import Episode
+from walkers.seeding import restore_generator
 
 
 class SequenceBatch(NamedTuple):
@@ -87,4 +88,4 @@ class SequenceSampler:
         return {"generator": self.generator.get_state()}
 
     def load_state_dict(self, state: dict) -> None:
-        self.generator.set_state(state["generator"])
+        restore_generator(self.generator, state["generator"], "the sequence sampler")

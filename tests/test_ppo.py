@@ -269,7 +269,10 @@ def test_evaluate_replays_the_final_evaluation_with_the_frozen_statistics(ppo_ru
             config_name="evaluate",
         )
     )
-    assert final.step == 600 and result["return_mean"] == final.value  # exactly: same statistics
+    # exactly on a CPU (same statistics, same kernels); a GPU's kernels read -930.39435772 against
+    # -930.39435715 for the same policy and start state
+    exact = 0 if not torch.cuda.is_available() else 1e-6
+    assert final.step == 600 and result["return_mean"] == pytest.approx(final.value, rel=exact)
     last = ppo_run["path"] / "work" / "runs" / run.info.run_id / "checkpoints" / "last.pt"
     state = checkpoints.load(last)
     assert state["agent"]["obs_normalizer"]["count"] == pytest.approx(600, abs=1)

@@ -17,6 +17,11 @@ matmul rate, and the memory of a full 1M-transition replay buffer. SB3 is a benc
 dependency (``pip install -e '.[sb3]'``); without it the SB3 rows are skipped. ``--only PPO``
 runs only the contenders with PPO in their name. A benchmark, not a test: nothing here asserts on
 time.
+
+``--device cuda`` runs every contender on the GPU (walkers' replay, sampling and updates, SB3's
+``device="cuda"``); the population rows then take ``--population`` (e.g. ``1,4,16``) for TD3 and
+for CrossQ at the paper's width, the per-core process rows are left out, and so is the CPU-only
+tail.
 """
 
 from __future__ import annotations
@@ -48,6 +53,7 @@ PPO_ROWS = ("walkers PPO", "SB3 PPO")
 #: CrossQ's critic widths on a CPU: the paper's 2048, sb3-contrib's 1024, and narrower ones
 CROSSQ_WIDTHS = (2048, 1024, 512, 256)
 CROSSQ_ROUND = 100  # env steps per round of the CrossQ rows (a 2048-wide update takes ~0.1 s)
+DEVICE = "cpu"  # where every contender runs: set once by --device, before any is built
 
 
 class WalkersLoop:
@@ -56,7 +62,7 @@ class WalkersLoop:
     def __init__(self, agent_cls, **kwargs):
         self.env = gym.make(ENV_ID)
         spaces = env_spaces(self.env)
-        self.agent = agent_cls(**spaces, seed=0, **defaults_for(agent_cls, **kwargs))
+        self.agent = agent_cls(**spaces, seed=0, device=DEVICE, **defaults_for(agent_cls, **kwargs))
         self.obs, _ = self.env.reset(seed=0)
 
     def run(self, steps: int) -> None:
@@ -73,10 +79,12 @@ class WalkersLoop:
 class PopulationLoop:
     """The population loop (``population=K``): K envs, one batched update for all members."""
 
-    def __init__(self, k: int, **kwargs):
+    def __init__(self, k: int, agent_cls=TD3, **kwargs):
         self.envs = [gym.make(ENV_ID) for _ in range(k)]
         spaces = env_spaces(self.envs[0])
-        self.agent = TD3(**spaces, seed=0, population=k, **defaults_for(TD3, **kwargs))
+        self.agent = agent_cls(
+            **spaces, seed=0, population=k, device=DEVICE, **defaults_for(agent_cls, **kwargs)
+        )
         self.obs = np.stack([env.reset(seed=i)[0] for i, env in enumerate(self.envs)])
         self.env_steps_per_step = k
 
@@ -146,7 +154,7 @@ class SB3Loop:
             gradient_steps=1,
             policy_kwargs={"net_arch": [HIDDEN, HIDDEN]},
             seed=0,
-            device="cpu",
+            device=DEVICE,
         )
 
     def run(self, steps: int) -> None:
@@ -177,7 +185,7 @@ class SB3CrossQLoop(SB3Loop):
             batch_size=BATCH,
             policy_kwargs={"net_arch": {"pi": [HIDDEN, HIDDEN], "qf": [width, width]}},
             seed=0,
-            device="cpu",
+            device=DEVICE,
         )
 
 
@@ -213,14 +221,23 @@ class SB3PPOLoop:
             max_grad_norm=0.5,
             policy_kwargs={"net_arch": [64, 64], "activation_fn": torch.nn.Tanh},
             seed=0,
-            device="cpu",
+            device=DEVICE,
         )
 
     def run(self, steps: int) -> None:
         self.model.learn(total_timesteps=steps, reset_num_timesteps=False)
 
 
-def contenders(only: str | None = None) -> dict:
+def crossq_population(k: int) -> PopulationLoop:
+    """K CrossQ seeds at the paper's width trained together (a GPU's case)."""
+    loop = PopulationLoop(
+        k, CrossQ, critic_hidden_sizes=[2048, 2048], batch_size=BATCH, learning_starts=WARMUP
+    )
+    loop.round_steps = CROSSQ_ROUND
+    return loop
+
+
+def contenders(only: str | None = None, population: tuple[int, ...] = (2, 4)) -> dict:
     common = {"lr": 3e-4, "batch_size": BATCH, "learning_starts": WARMUP}
     loops = {
         "walkers TD3": lambda: WalkersLoop(TD3, hidden_sizes=[HIDDEN, HIDDEN], **common),
@@ -233,12 +250,23 @@ def contenders(only: str | None = None) -> dict:
         "walkers REINFORCE": lambda: WalkersLoop(Reinforce, hidden_sizes=[HIDDEN, HIDDEN]),
         "walkers PPO": walkers_ppo,
         # population=K: the aggregate env steps/s of K seeds trained together
-        "walkers TD3 K=2": lambda: PopulationLoop(2, hidden_sizes=[HIDDEN, HIDDEN], **common),
-        "walkers TD3 K=4": lambda: PopulationLoop(4, hidden_sizes=[HIDDEN, HIDDEN], **common),
-        # the same cores as processes: one seed (or a population of 2) per core, 1 thread each
-        "2 procs x TD3": lambda: ParallelLoops(2, hidden_sizes=[HIDDEN, HIDDEN], **common),
-        "2 procs x TD3 K=2": lambda: ParallelLoops(2, k=2, hidden_sizes=[HIDDEN, HIDDEN], **common),
+        **{
+            f"walkers TD3 K={k}": partial(
+                PopulationLoop, k, hidden_sizes=[HIDDEN, HIDDEN], **common
+            )
+            for k in population
+            if k > 1
+        },
     }
+    if DEVICE == "cpu":  # the same cores as processes: one seed (or K=2) per core, 1 thread each
+        loops |= {
+            "2 procs x TD3": lambda: ParallelLoops(2, hidden_sizes=[HIDDEN, HIDDEN], **common),
+            "2 procs x TD3 K=2": lambda: ParallelLoops(
+                2, k=2, hidden_sizes=[HIDDEN, HIDDEN], **common
+            ),
+        }
+    else:  # on a GPU the paper's CrossQ width, K seeds at a time
+        loops |= {f"walkers CrossQ 2048 K={k}": partial(crossq_population, k) for k in population}
     try:
         import stable_baselines3  # noqa: F401
 
@@ -290,8 +318,14 @@ def main():
     parser.add_argument(
         "--only", help="the contenders whose name contains one of these (e.g. PPO, or CrossQ,SAC)"
     )
+    parser.add_argument("--device", default="cpu", help="cpu | cuda: where every contender runs")
+    parser.add_argument(
+        "--population", default="2,4", help="population sizes of the K= rows (e.g. 1,4,16)"
+    )
     args = parser.parse_args()
-    loops = contenders(args.only)
+    global DEVICE
+    DEVICE = args.device
+    loops = contenders(args.only, tuple(int(k) for k in args.population.split(",")))
     for loop in loops.values():
         loop.run(WARMUP + 100)  # past the warm-up (and any compile): every timed step learns
 
@@ -302,28 +336,29 @@ def main():
         return steps * getattr(loop, "env_steps_per_step", 1) / (time.perf_counter() - start)
 
     sps = alternate(loops, steps_per_second, args.reps)
+    where = f"{torch.get_num_threads()} threads" if DEVICE == "cpu" else f"on {DEVICE}"
     on_policy = {name: sps.pop(name) for name in PPO_ROWS if name in sps}
     crossq = {name: sps.pop(name) for name in list(sps) if "CrossQ" in name}
     if crossq:
         crossq |= {name: sps[name] for name in ("walkers SAC", "SB3 SAC") if name in sps}
         print(
             f"\n{ENV_ID}, CrossQ by critic width (actor {HIDDEN}-{HIDDEN}, batch {BATCH}) beside "
-            f"SAC, {torch.get_num_threads()} threads, {args.reps} rounds x {CROSSQ_ROUND} steps"
+            f"SAC, {where}, {args.reps} rounds x {CROSSQ_ROUND} steps"
         )
         print_table(crossq, "env steps/s", baseline="walkers SAC")
     if sps:
         print(
             f"\n{ENV_ID}, learning phase, {HIDDEN}-{HIDDEN}, batch {BATCH}, 1 gradient step per "
-            f"env step, {torch.get_num_threads()} threads, {args.reps} rounds x {args.steps} steps"
+            f"env step, {where}, {args.reps} rounds x {args.steps} steps"
         )
         print_table(sps, "env steps/s", baseline="SB3 TD3")
     if on_policy:
         print(
-            f"\n{ENV_ID}, PPO at the reference settings, {torch.get_num_threads()} threads, "
+            f"\n{ENV_ID}, PPO at the reference settings, {where}, "
             f"{args.reps} rounds x 1 rollout of {PPO_ROLLOUT} steps and its update"
         )
         print_table(on_policy, "env steps/s", baseline="SB3 PPO")
-    if "walkers TD3" not in loops:
+    if "walkers TD3" not in loops or DEVICE != "cpu":
         return
 
     td3 = loops["walkers TD3"].agent

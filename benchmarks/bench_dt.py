@@ -1,0 +1,85 @@
+"""The Decision Transformer's gradient step at its reference size, on Walker2d shapes.
+
+    .venv/bin/python benchmarks/bench_dt.py [--devices cpu,cuda] [--reps 5] [--steps 20]
+
+The agent at its declared defaults (``conf/algo/dt.yaml``: context 20, embedding 128, 3 blocks,
+1 head, batch 64, dropout 0.1, AdamW), sampling from a synthetic dataset of Walker2d-v5 shapes
+(17-d observations, 6-d actions, 20 episodes of 1,000 steps): what ``algo=dt env=walker2d``
+runs per gradient step, the sampling of the batch included. The devices take turns, ``--steps``
+gradient steps a round, and the table gives the median ms per step and the ratio to the first
+device. A benchmark, not a test: nothing here asserts on time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+import torch
+from rounds import alternate, print_table
+
+from walkers.agents.dt import DecisionTransformer
+from walkers.agents.factory import defaults_for
+from walkers.data.datasets import OfflineData
+from walkers.data.episodes import Episode
+
+OBS, ACT, EPISODES, STEPS = 17, 6, 20, 1_000
+
+
+def walker2d_shaped_data(seed: int = 0) -> OfflineData:
+    rng = np.random.default_rng(seed)
+    episodes = [
+        Episode(
+            rng.normal(size=(STEPS + 1, OBS)).astype(np.float32),
+            rng.uniform(-1, 1, size=(STEPS, ACT)).astype(np.float32),
+            rng.normal(1.0, 0.5, size=STEPS).astype(np.float32),
+            np.zeros(STEPS, bool),
+            np.arange(STEPS) == STEPS - 1,
+        )
+        for _ in range(EPISODES)
+    ]
+    return OfflineData("synthetic", "Walker2d-v5", episodes, None, None)
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--devices", default="cpu", help="comma-separated, e.g. cpu,cuda")
+    parser.add_argument("--reps", type=int, default=5, help="alternating rounds")
+    parser.add_argument("--steps", type=int, default=20, help="gradient steps per round")
+    args = parser.parse_args()
+    data = walker2d_shaped_data()
+    agents = {
+        f"walkers DT on {device}": DecisionTransformer(
+            OBS,
+            [-1.0] * ACT,
+            [1.0] * ACT,
+            dataset=data,
+            device=device,
+            **defaults_for(DecisionTransformer, max_episode_steps=STEPS),
+        )  # fmt: skip
+        for device in args.devices.split(",")
+    }
+
+    def ms_per_step(agent) -> float:
+        sync = torch.cuda.synchronize if agent.device.type == "cuda" else (lambda: None)
+        sync()
+        start = time.perf_counter()
+        for _ in range(args.steps):
+            agent.update()
+        sync()
+        return (time.perf_counter() - start) / args.steps * 1e3
+
+    for agent in agents.values():
+        ms_per_step(agent)  # warm-up: allocations, kernels, the first AdamW step
+    times = alternate(agents, ms_per_step, args.reps)
+    first = next(iter(agents))
+    print(
+        f"\nDecision Transformer gradient step, Walker2d shapes, reference size, "
+        f"{torch.get_num_threads()} CPU threads, {args.reps} rounds x {args.steps} steps"
+    )
+    print_table(times, "ms per step", baseline=first)
+
+
+if __name__ == "__main__":
+    main()

@@ -396,6 +396,47 @@ class DecisionTransformerHyperparameters(Hyperparameters):
     )
 
 
+@dataclass
+class TD3BCHyperparameters(Hyperparameters):
+    """TD3+BC (Fujimoto & Gu 2021, "A Minimalist Approach to Offline Reinforcement Learning"):
+    TD3 trained offline on a Minari dataset (e.g. one recorded by `python -m walkers.collect`),
+    its actor loss -lambda Q(s, pi(s)) + (pi(s) - a)^2, lambda = alpha / mean |Q|.
+      python -m walkers.train algo=td3bc env=walker2d dataset=walkers/walker2d/td3-expert
+    Defaults are the reference implementation's. This file sets the x-axis keys too: for an offline
+    algorithm total_steps, eval_every, checkpoint_every and log_every count gradient steps."""
+
+    AGENT = "walkers.agents.td3bc.TD3BC"
+    NAME = "td3bc"
+    RUN_SETTINGS = {
+        "total_steps": (1_000_000, "gradient steps"),
+        "eval_every": (5_000, "gradient steps between evaluations"),
+        "checkpoint_every": (50_000, "gradient steps between checkpoints"),
+    }
+    lr: float = hp(3.0e-4, POSITIVE, "Adam learning rate, actor and critics")
+    batch_size: int = hp(256, POSITIVE_INT, "dataset transitions per gradient step")
+    hidden_sizes: list[int] = hp([256, 256], LAYERS, "hidden layers of actor and critics")
+    gamma: float = hp(0.99, DISCOUNT, "discount")
+    tau: float = hp(0.005, DISCOUNT, "target networks: theta' <- tau * theta + (1 - tau) * theta'")
+    policy_noise: float = hp(
+        0.2,
+        NON_NEGATIVE,
+        "TD3's target policy smoothing noise std (fraction of the action range half-width)",
+    )
+    noise_clip: float = hp(0.5, NON_NEGATIVE, "clip of that noise (same units)")
+    policy_delay: int = hp(2, POSITIVE_INT, "critic updates per actor/target update")
+    alpha: float = hp(
+        2.5,
+        POSITIVE,
+        "weight of the Q term against behaviour cloning: lambda = alpha / mean |Q(s, pi(s))|",
+    )
+    normalize_states: bool = hp(
+        True,
+        BOOL,
+        "normalize states with the dataset's mean and std (+ 1e-3), in training and acting",
+    )
+    compile: bool = hp(False, BOOL, COMPILE_DOC)
+
+
 #: Each algorithm's declaration, by its name (``algo=<name>``).
 SCHEMAS: dict[str, type[Hyperparameters]] = {
     schema.NAME: schema
@@ -407,6 +448,7 @@ SCHEMAS: dict[str, type[Hyperparameters]] = {
         PPOHyperparameters,
         ReinforceHyperparameters,
         DecisionTransformerHyperparameters,
+        TD3BCHyperparameters,
     )
 }
 

@@ -107,7 +107,7 @@ class TD3(ActorCritic):
         actor_bad = None  # the delayed step's verdict, when it runs
         if self.num_updates % self.policy_delay == 0:
             with frozen(self.critic):
-                actor_loss = self.actor_loss(b.obs)
+                actor_loss = self.actor_loss(b)
             # critic_bad, not the critic loss: under CUDA graphs the actor-loss run has already
             # reclaimed the critic-loss run's outputs
             actor_bad = guarded_step(self.actor_optimizer, actor_loss, 1, also_bad=critic_bad)
@@ -139,11 +139,16 @@ class TD3(ActorCritic):
         q = self.q_values(self.critic, b.obs, b.action)
         return self.critics_regression(q, y), q.detach().mean(dim=(1, 2))
 
-    def actor_loss(self, obs: torch.Tensor) -> torch.Tensor:
+    def actor_loss(self, b: Batch) -> torch.Tensor:
         """-Q_1(s, pi(s)) per member ``(K,)``: the deterministic policy gradient on the first
-        critic alone."""
-        q_pi = self.critic(obs, self.actor(obs), members=slice(0, None, self.num_critics))
+        critic alone (of the batch, TD3 reads only the states)."""
+        _, q_pi = self.policy_q1(b.obs)
         return -q_pi.mean(dim=-1)
+
+    def policy_q1(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """pi(s) ``(K, N, act_dim)`` and Q_1(s, pi(s)) ``(K, N)``: each member's first critic."""
+        action = self.actor(obs)
+        return action, self.critic(obs, action, members=slice(0, None, self.num_critics))
 
     # --- checkpoints: the targets are per-member parts too ---------------------------------------
     def member_cuts(self, i: int) -> dict[str, slice]:

@@ -29,6 +29,10 @@ def per_target_return(normalize: Normalize) -> Evaluation:
     normalized score (``.../normalized_score``, and ``eval/normalized_score`` for the first)."""
 
     def evaluate(agent, env: gym.Env, start_seeds: list[int]):
+        if not hasattr(agent, "target_returns"):  # not return-conditioned (td3bc): greedy
+            returns = run_episodes(agent, env, start_seeds)
+            score = normalize(float(returns.mean()))
+            return returns, {} if score is None else {"eval/normalized_score": score}
         extra, headline = {}, None
         for target in agent.target_returns:
             agent.target_return = target

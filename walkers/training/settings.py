@@ -23,6 +23,7 @@ import sys
 from dataclasses import dataclass, fields
 from pathlib import Path
 
+from hydra.utils import get_class
 from omegaconf import DictConfig, OmegaConf
 
 from walkers import PROJECT_ROOT
@@ -38,6 +39,8 @@ DEVICES = ("auto", "cpu", "cuda")
 IMPLEMENTATIONS = ("walkers", "sb3")
 #: the algorithms that train seed populations: the replay-based actor-critics
 REPLAY_BASED = [name for name, schema in SCHEMAS.items() if issubclass(schema, Replay)]
+#: the algorithms that learn from a dataset (``dataset=``): their agent class says offline = True
+OFFLINE = [name for name, schema in SCHEMAS.items() if get_class(schema.AGENT).offline]
 
 
 def _listed(choices) -> Allowed:
@@ -79,7 +82,9 @@ class RunSettings:
         "local resume copy always has it",
     )
     dataset: str | None = hp(
-        None, None, "offline algorithms (algo=dt): the Minari dataset id to learn from"
+        None,
+        None,
+        f"offline algorithms ({'/'.join(OFFLINE)}): the Minari dataset id to learn from",
     )
     resume: str | list[str] | None = hp(
         None,

@@ -54,14 +54,18 @@ def is_offline(cfg: DictConfig) -> bool:
 def _check_population(cfg: DictConfig) -> None:
     from hydra.utils import get_class
 
+    def populates(agent_class) -> bool:  # K members in one agent, each stepping its own env
+        return hasattr(agent_class, "act_population") and not getattr(agent_class, "offline", False)
+
     k = cfg.get("population", 1)
     if k == 1:
         return
-    if not hasattr(get_class(cfg.algo._target_), "act_population"):
-        able = [n for n, s in SCHEMAS.items() if hasattr(get_class(s.AGENT), "act_population")]
+    if not populates(get_class(cfg.algo._target_)):
+        able = [n for n, s in SCHEMAS.items() if populates(get_class(s.AGENT))]
+        offline = " (an offline run trains one seed: use a multirun over seeds)"
         raise ConfigError(
             f"population={k} is not allowed with algo={cfg.algo.name}: "
-            f"only {', '.join(able)} train seed populations"
+            f"only {', '.join(able)} train seed populations{offline if is_offline(cfg) else ''}"
         )
     for key, unsupported in (("video_every", cfg.video_every), ("a sweep", cfg.trial.id)):
         if unsupported:
@@ -97,7 +101,8 @@ def _check_dataset(cfg: DictConfig) -> None:
     if not is_offline(cfg) and dataset:
         raise ConfigError(
             f"dataset={dataset!r} is not allowed with algo={cfg.algo.name}: only offline "
-            "algorithms (dt) train on a dataset; online ones collect their own experience"
+            f"algorithms ({', '.join(settings.OFFLINE)}) train on a dataset; online ones "
+            "collect their own experience"
         )
 
 

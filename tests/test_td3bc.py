@@ -1,0 +1,284 @@
+"""TD3+BC (algo=td3bc): its actor loss against a hand computation, the dataset's state
+normalization in the buffer and in acting, and a tiny chain end to end: TD3 on Pendulum -> a
+dataset of it and a random policy -> TD3+BC on it (gradient steps) -> a report beside TD3 -> a
+resume that goes on where it stopped.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from tests.conftest import TINY, all_runs, compose_cfg, metric_steps, new_store
+from walkers.agents.factory import defaults_for
+from walkers.agents.td3 import TD3
+from walkers.agents.td3bc import TD3BC
+from walkers.analysis.comparison import compare
+from walkers.data.datasets import OfflineData
+from walkers.data.episodes import Episode
+from walkers.data.replay import Batch
+from walkers.errors import ConfigError
+from walkers.train import train
+from walkers.training import checkpoints
+from walkers.training.checkpoints import agent_from_checkpoint
+from walkers.training.collection import collect
+from walkers.training.envs import make_env
+from walkers.training.policy_replay import evaluate
+from walkers.training.validate import validate
+
+SMALL = {"hidden_sizes": [16, 16], "batch_size": 32}
+MEAN, STD = np.array([5.0, -1.0, 0.0]), np.array([1.0, 2.0, 3.0])
+
+
+def _dataset(episodes: int = 3, steps: int = 50) -> OfflineData:
+    """Pendulum-shaped episodes (3 state dims, 1 action in [-2, 2]) of known state statistics;
+    the first one ends in a termination, the others are cut by the time limit."""
+    rng = np.random.default_rng(0)
+    recorded = []
+    for i in range(episodes):
+        last = np.r_[np.zeros(steps - 1, bool), True]
+        recorded.append(
+            Episode(
+                observations=(MEAN + STD * rng.normal(size=(steps + 1, 3))).astype(np.float32),
+                actions=rng.uniform(-2, 2, (steps, 1)).astype(np.float32),
+                rewards=rng.normal(size=steps),
+                terminations=last & (i == 0),
+                truncations=last & (i != 0),
+            )
+        )
+    return OfflineData("test/pendulum/synthetic-v0", "Pendulum-v1", recorded, None, None)
+
+
+def _agent(dataset: OfflineData | None, **overrides) -> TD3BC:
+    return TD3BC(3, [-2.0], [2.0], dataset=dataset, **defaults_for(TD3BC, **SMALL, **overrides))
+
+
+# --- the loss ---------------------------------------------------------------------------------
+def test_the_actor_loss_is_lambda_q_plus_behaviour_cloning_by_hand():
+    """Q_1(s, pi(s)) = [1, -3], pi(s) = [0.5, 0], a = [0, 1]: lambda = 2.5 / mean |Q| = 1.25,
+    -lambda mean Q = 1.25, BC = (0.25 + 1) / 2 = 0.625; lambda is a constant (no gradient)."""
+    agent = _agent(None)
+    q = torch.tensor([[1.0, -3.0]], requires_grad=True)
+    pi = torch.tensor([[[0.5], [0.0]]], requires_grad=True)
+    agent.policy_q1 = lambda obs: (pi, q)
+    action = torch.tensor([[[0.0], [1.0]]])
+    b = Batch(
+        torch.zeros(1, 2, 3), action, torch.zeros(1, 2), torch.zeros(1, 2, 3), torch.zeros(1, 2)
+    )
+    loss = agent.actor_loss(b)
+    assert loss.shape == (1,) and loss.item() == pytest.approx(1.25 + 0.625)
+    loss.sum().backward()
+    assert q.grad.tolist() == [[-1.25 / 2, -1.25 / 2]]  # -lambda / N: lambda held constant
+    assert pi.grad.flatten().tolist() == pytest.approx([2 * 0.5 / 2, 2 * -1.0 / 2])
+
+
+def test_the_actor_loss_is_td3s_scaled_plus_bc_and_the_critics_are_td3s():
+    """On the real networks: lambda times TD3's actor loss (-mean Q_1) plus the mean squared
+    error to the dataset's actions; the critics' update and target are TD3's own methods."""
+    agent = _agent(_dataset())
+    b = agent.sample()
+    pi, q = agent.policy_q1(b.obs)
+    lmbda = 2.5 / q.abs().mean(dim=-1)
+    bc = ((pi - b.action) ** 2).mean(dim=(1, 2))
+    expected = lmbda * TD3.actor_loss(agent, b) + bc
+    torch.testing.assert_close(agent.actor_loss(b), expected)
+    assert TD3BC.critic_loss is TD3.critic_loss and TD3BC.update is TD3.update
+    assert (agent.policy_noise, agent.noise_clip, agent.policy_delay, agent.tau) == (
+        0.2,
+        0.5,
+        2,
+        0.005,
+    )
+    metrics = [agent.update() for _ in range(4)]  # the actor every second update, as TD3's
+    assert ["loss/actor" in m for m in metrics] == [False, True, False, True]
+
+
+# --- the dataset's state normalization ----------------------------------------------------------
+def test_states_are_normalized_with_the_datasets_mean_and_std_in_the_buffer_and_in_acting():
+    data = _dataset()
+    agent = _agent(data)
+    states = np.concatenate([e.observations[:-1] for e in data.episodes])  # s, not s'
+    np.testing.assert_allclose(agent.obs_mean, states.mean(axis=0), rtol=1e-6)
+    np.testing.assert_allclose(agent.obs_std, states.std(axis=0) + 1e-3, rtol=1e-6)
+    n = data.steps
+    assert len(agent.buffer) == n == agent.buffer.capacity
+    buffer = {k: getattr(agent.buffer, k)[:n].numpy() for k in ("obs", "next_obs", "terminated")}
+    normalized = (states - agent.obs_mean) / agent.obs_std
+    np.testing.assert_allclose(buffer["obs"], normalized, rtol=1e-5, atol=1e-6)
+    next_states = np.concatenate([e.observations[1:] for e in data.episodes])
+    np.testing.assert_allclose(
+        buffer["next_obs"], (next_states - agent.obs_mean) / agent.obs_std, rtol=1e-5, atol=1e-6
+    )
+    assert buffer["terminated"].sum() == 1 and buffer["terminated"][49] == 1  # not truncations
+    np.testing.assert_array_equal(
+        agent.buffer.action[:n].numpy(), np.concatenate([e.actions for e in data.episodes])
+    )
+    s = data.episodes[1].observations[7]
+    with torch.no_grad():
+        pi = agent.actor(torch.as_tensor(normalized[57]).view(1, 1, 3))[0, 0].numpy()
+    np.testing.assert_allclose(agent.act(s, explore=False), pi, rtol=1e-5)
+    np.testing.assert_array_equal(agent.act(s, explore=True), agent.act(s, explore=False))
+
+    raw = _agent(data, normalize_states=False)
+    np.testing.assert_array_equal(raw.buffer.obs[:n].numpy(), states)
+
+
+def test_a_checkpoint_acts_without_the_dataset_and_resumes_with_it():
+    """The normalization is in the checkpoint, the dataset is not (it is reloaded by name)."""
+    data = _dataset()
+    agent = _agent(data)
+    for _ in range(3):
+        agent.update()
+    state = agent.state_dict(with_buffer=True)
+    assert {"obs_mean", "obs_std"} <= set(state) and "data" not in state["buffer"]
+    acting = _agent(None)  # walkers.evaluate, walkers.collect: no dataset
+    acting.load_state_dict(state)
+    s = data.episodes[2].observations[3]
+    np.testing.assert_array_equal(acting.act(s, explore=False), agent.act(s, explore=False))
+    resumed = _agent(data)
+    resumed.load_state_dict(state)
+    assert len(resumed.buffer) == data.steps and resumed.num_updates == 3
+    assert torch.equal(resumed.sample().obs, agent.sample().obs)  # the sampler goes on
+    assert "loss/actor" in resumed.update()  # update 4: the delayed step
+
+
+# --- a tiny chain end to end --------------------------------------------------------------------
+TD3_STEPS = 400  # env steps: two Pendulum episodes
+TD3_RUN = [
+    *TINY,
+    f"total_steps={TD3_STEPS}",
+    "eval_every=200",
+    "checkpoint_every=200",
+    "algo.learning_starts=100",
+    "algo.batch_size=32",
+    "algo.hidden_sizes=[16,16]",
+]
+DATASET = "walkers/pendulum/tiny-td3bc-v0"
+STEPS = 300  # gradient steps
+TD3BC_RUN = [
+    "algo=td3bc",
+    "env=pendulum",
+    f"dataset={DATASET}",
+    f"total_steps={STEPS}",
+    "eval_every=150",
+    "checkpoint_every=150",
+    "log_every=50",
+    "eval_episodes=1",
+    "algo.hidden_sizes=[32,32]",
+    "algo.batch_size=64",
+    "progress=false",
+]
+
+
+@pytest.fixture(scope="module")
+def chain(tmp_path_factory, _empty_store_file):
+    """A tiny TD3 run, a dataset of it and a random policy, a TD3+BC run on the dataset."""
+    store = new_store(tmp_path_factory.mktemp("td3bc"), _empty_store_file)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("MINARI_DATASETS_PATH", str(store["path"] / "minari"))
+        train(compose_cfg(["algo=td3", "env=pendulum", *TD3_RUN, *store["overrides"]]))
+        (td3,) = all_runs(store["client"])
+        collect(
+            compose_cfg(
+                [
+                    f"run_id=[random,{td3.info.run_id}]",
+                    "env=pendulum",
+                    "episodes=2",
+                    "random_episodes=2",
+                    f"dataset={DATASET}",
+                    "log_to_mlflow=false",
+                    *store["overrides"],
+                ],
+                config_name="collect",
+            )
+        )
+        train(compose_cfg([*TD3BC_RUN, *store["overrides"]]))
+        (run,) = [r for r in all_runs(store["client"]) if r.data.tags.get("algo") == "td3bc"]
+        yield {**store, "run": run}
+
+
+def test_a_td3bc_run_counts_gradient_steps_and_reports_a_normalized_score(chain):
+    run, client = chain["run"], chain["client"]
+    assert run.info.status == "FINISHED"
+    assert (
+        run.data.tags["walkers.x_axis"] == "gradient_steps" and run.data.tags["dataset"] == DATASET
+    )
+    assert run.data.params["dataset_stats.steps"] == str(4 * 200)
+    assert metric_steps(client, run.info.run_id, "eval/return_mean") == [150, STEPS]
+    assert metric_steps(client, run.info.run_id, "loss/critic") == [50, 100, 150, 200, 250, 300]
+    assert {"final/normalized_score", "eval/normalized_score", "loss/actor"} <= set(
+        run.data.metrics
+    )
+    assert "perf/gradient_steps_per_s" in run.data.metrics
+    env = make_env({"id": "Pendulum-v1", "max_episode_steps": 200}, shaping=False)
+    state = checkpoints.load(
+        client.download_artifacts(run.info.run_id, "checkpoints/last.pt", str(chain["path"]))
+    )
+    _, agent = agent_from_checkpoint(state, env, "cpu")  # no dataset: the stats come with it
+    env.close()
+    assert isinstance(agent, TD3BC) and agent.obs_std.shape == (3,) and agent.obs_std.min() > 0
+    replay = evaluate(
+        compose_cfg(
+            [f"run_id={run.info.run_id}", "episodes=1", "video=false", *chain["overrides"]],
+            config_name="evaluate",
+        )
+    )
+    assert np.isfinite(replay["return_mean"])
+
+
+def test_report_puts_td3bc_beside_td3(chain, tmp_path):
+    comparison, out, _ = compare(
+        compose_cfg(
+            [
+                *chain["overrides"],
+                "env=pendulum",
+                "algos=[td3,td3bc]",
+                f"out={tmp_path}",
+                "n_resamples=200",
+            ],
+            config_name="compare",
+        )
+    )
+    td3bc = next(r for r in comparison.algos if r.algo == "td3bc")
+    assert td3bc.x_axis == "gradient_steps" and td3bc.dataset == DATASET
+    assert comparison.budgets == {"env_steps": TD3_STEPS, "gradient_steps": STEPS}
+    report = (out / "report.md").read_text()
+    assert f"td3bc (offline, {DATASET})" in report
+
+
+def test_a_td3bc_run_resumes_where_it_stopped(chain):
+    """100 more gradient steps: the same run goes on from its dataset (reloaded, not emptied),
+    no step logged twice."""
+    run_id, client = chain["run"].info.run_id, chain["client"]
+    more = STEPS + 100
+    train(
+        compose_cfg([f"resume={run_id}", f"total_steps={more}", *chain["overrides"]]),
+        overrides=[f"total_steps={more}"],
+    )
+    steps = metric_steps(client, run_id, "loss/critic")
+    assert steps == sorted(set(steps)) and steps[-1] == more
+    assert client.get_run(run_id).info.status == "FINISHED"
+    assert len([r for r in all_runs(client) if r.data.tags.get("algo") == "td3bc"]) == 1
+
+
+def test_td3bc_bad_input_is_one_line(chain):
+    with pytest.raises(ConfigError, match=r"^dataset=None is not allowed: algo=td3bc"):
+        validate(compose_cfg(["algo=td3bc", "env=pendulum"]))
+    offline = ["algo=td3bc", "env=pendulum", f"dataset={DATASET}"]
+    with pytest.raises(
+        ConfigError,
+        match=r"^population=2 is not allowed with algo=td3bc: only td3, ddpg, sac, crossq .*"
+        r"an offline run trains one seed",
+    ):
+        validate(compose_cfg([*offline, "population=2"]))
+    with pytest.raises(ConfigError, match=r"^impl=sb3 is not available for algo=td3bc"):
+        validate(compose_cfg([*offline, "impl=sb3"]))
+    with pytest.raises(ConfigError, match=r"only offline algorithms \(dt, td3bc\)"):
+        validate(compose_cfg(["algo=td3", "dataset=x"]))
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("MINARI_DATASETS_PATH", str(chain["path"] / "minari"))
+        with pytest.raises(ConfigError, match=r"recorded on Pendulum-v1, not on env.id='Hopper"):
+            train(compose_cfg([*TD3BC_RUN, "env=hopper", *chain["overrides"]]))
+        with pytest.raises(ConfigError, match=r"^algo.batch_size=1000 is more than the 800"):
+            train(compose_cfg([*TD3BC_RUN, "algo.batch_size=1000", *chain["overrides"]]))

@@ -92,6 +92,22 @@ class ReplayBuffer:
             self.pos, self.size = 0, 0
 
 
+def first_steps(state: dict, n: int, steps_seen: int) -> dict:
+    """A saved buffer (``state_dict(with_data=True)``) cut back to the transitions of the run's
+    first ``n`` env steps, ``steps_seen`` being how many it took in all: what the run had seen when
+    it was ``n`` steps in (a "medium-replay" dataset of a run that went on). The buffer must still
+    hold them: a ring that has wrapped has overwritten its oldest transitions."""
+    if steps_seen > state["size"]:
+        raise ValueError(
+            f"the buffer holds the last {state['size']:,} of {steps_seen:,} steps: "
+            "its first steps were overwritten"
+        )
+    if not 0 < n <= steps_seen:
+        raise ValueError(f"must be between 1 and the {steps_seen:,} steps the run took")
+    data = {name: values[:n] for name, values in state["data"].items()}
+    return {**state, "pos": n, "size": n, "data": data}
+
+
 def replay_episodes(state: dict) -> list[Episode]:
     """The whole episodes in a saved replay buffer (``state_dict(with_data=True)``), oldest first.
 

@@ -9,7 +9,9 @@ Each behaviour policy (a run's checkpoint, or ``random``: uniform actions) plays
 episodes, greedy plus optional Gaussian ``exploration_noise``; several ``run_id``s mix policies
 of different quality (a "medium-expert" dataset). ``replay=true`` stores instead what a run saw
 while it learned: its replay buffer, saved in ``last.pt`` when it was trained with
-``save_buffer=true``. Rewards are the env's own (no training-time shaping). The dataset's stats
+``save_buffer=true`` (or, where it trained, in its resume checkpoint); ``replay_steps=N`` keeps
+only what it saw in its first N env steps (a "medium-replay" dataset of a run that went on to
+expert level). Rewards are the env's own (no training-time shaping). The dataset's stats
 (episodes, steps, return distribution, behaviour and random-policy mean return) are printed and
 logged as an MLflow run tagged ``walkers.kind=dataset``.
 """
@@ -27,12 +29,13 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from walkers import tracking
 from walkers.agents.base import Agent
 from walkers.data.episodes import Episode
-from walkers.data.replay import replay_episodes
+from walkers.data.replay import first_steps, replay_episodes
 from walkers.errors import CheckpointError, ConfigError
 from walkers.training import checkpoints
 from walkers.training.checkpoints import agent_from_checkpoint
 from walkers.training.envs import make_env
 from walkers.training.policy_replay import fetch_checkpoint
+from walkers.training.run import RunFolder
 
 log = logging.getLogger("walkers")
 
@@ -180,6 +183,12 @@ def _check(cfg: DictConfig) -> None:
         )
     if cfg.replay and RANDOM in _run_ids(cfg):
         raise ConfigError("replay=true records a run's replay buffer: run_id=random has none")
+    steps = cfg.get("replay_steps")
+    if steps is not None and not (cfg.replay and isinstance(steps, int) and steps > 0):
+        raise ConfigError(
+            f"replay_steps={steps!r} is not allowed: an integer > 0, with replay=true (the "
+            "transitions of the run's first replay_steps env steps)"
+        )
 
 
 def collect(cfg: DictConfig) -> dict:
@@ -200,13 +209,7 @@ def collect(cfg: DictConfig) -> dict:
     try:
         for k, b in enumerate(behaviours):
             if cfg.replay:
-                try:
-                    recorded = replay_episodes(b.state["agent"]["buffer"])
-                except KeyError:
-                    raise CheckpointError(
-                        f"{b.label} has no replay buffer in it: train the run with "
-                        "save_buffer=true (its last.pt then holds the buffer)"
-                    ) from None
+                recorded = replay_episodes(replay_buffer(b, cfg))
             else:
                 seed = cfg.seed + k * cfg.episodes
                 recorded = play(b.agent, env, cfg.episodes, seed, cfg.exploration_noise, rng)
@@ -239,6 +242,30 @@ def collect(cfg: DictConfig) -> dict:
         sources = [b.run_id or b.label for b in behaviours]
         stats["mlflow_url"] = _log_dataset_run(client, cfg, data, stats, sources)
     return stats
+
+
+def replay_buffer(b: Behaviour, cfg: DictConfig) -> dict:
+    """The replay buffer ``b``'s run saved: in its logged ``last.pt`` (``save_buffer=true``), else
+    in the resume checkpoint the run keeps in ``work_dir`` on the machine it trained on; cut to its
+    first ``replay_steps`` env steps if asked."""
+    state = b.state
+    if "data" not in state["agent"].get("buffer", {}) and b.run_id is not None:
+        local = RunFolder.of(cfg.work_dir, b.run_id).resume_checkpoint
+        if local.is_file():
+            log.info("%s: the replay buffer of its resume checkpoint %s", b.label, local)
+            state = checkpoints.load(local)
+    buffer = state["agent"].get("buffer", {})
+    if "data" not in buffer:
+        raise CheckpointError(
+            f"{b.label} has no replay buffer in it: train the run with save_buffer=true (its "
+            "last.pt then holds the buffer), or collect where it trained (its resume checkpoint)"
+        )
+    if cfg.replay_steps is None:
+        return buffer
+    try:
+        return first_steps(buffer, cfg.replay_steps, state["agent"]["steps"])
+    except ValueError as e:
+        raise ConfigError(f"replay_steps={cfg.replay_steps!r} is not allowed: {e}") from None
 
 
 def dataset_stats(data, per_source: dict[str, list[float]]) -> dict:

@@ -44,6 +44,7 @@ NOT_THE_EXPERIMENT = (
     "env.threshold",  # only for steps-to-threshold, which the report recomputes with its own
     "env.published",  # published reference figures, shown in reports (conf/env/*.yaml)
     "env.scores.",  # the random and reference scores normalized scores are computed with
+    "normalized_score.",  # an offline run's references (the same, as the run used them)
 )
 
 #: ``device`` values that mean the CPU. ``auto`` counts as CPU: the params do not record what it

@@ -26,6 +26,37 @@ from walkers.tracking.names import ENV_STEPS
 QUANTITY_NAMES = {"score": "final return", "auc": "AUC (rate of learning)"}
 
 
+def _normalized_lines(r) -> list[str]:
+    """An offline arm's normalized score beside its raw return, and its behaviour policy's."""
+    refs, (point, low, high) = r.runs[0].references, r.normalized_iqm
+    if refs is None or point is None:
+        if r.normalized_score_mean is None:
+            return []
+        return [
+            "",
+            f"{r.algo}: final normalized score {_num(r.normalized_score_mean)} (mean over "
+            f"seeds; 0 = a random policy, 100 = the behaviour policy of {r.dataset}).",
+        ]
+    random, expert, source = refs
+    scale = (
+        f"the env's references (conf/env: random {_num(random)}, expert {_num(expert)})"
+        if source == "env"
+        else f"the dataset's (random {_num(random)}, behaviour {_num(expert)})"
+    )
+    ci = f" [{_num(low)}, {_num(high)}]" if low is not None else ""
+    line = (
+        f"{r.label}: normalized score {_num(point)}{ci} (IQM of the final returns, "
+        f"{_num(r.iqm[0])}, and its CI, on {scale})"
+    )
+    if r.runs[0].behaviour_return is not None:
+        behaviour = r.runs[0].behaviour_return
+        line += (
+            f"; the data's behaviour policy: return {_num(behaviour)}, "
+            f"normalized score {_num(r.normalized(behaviour))}"
+        )
+    return ["", line + "."]
+
+
 def _num(x: float) -> str:
     if x is None or not math.isfinite(x):
         return "n/a"
@@ -241,12 +272,7 @@ def markdown(c: Comparison, source: str) -> str:
             "`python -m walkers.plan` plans a study from these runs.",
         ]
     for r in c.algos:
-        if r.normalized_score_mean is not None:
-            out += [
-                "",
-                f"{r.algo}: final normalized score {_num(r.normalized_score_mean)} (mean over "
-                f"seeds; 0 = a random policy, 100 = the behaviour policy of {r.dataset}).",
-            ]
+        out += _normalized_lines(r)
     if len(c.grids) > 1:
         out += [
             "",

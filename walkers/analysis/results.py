@@ -39,7 +39,10 @@ class SeedRun:
     summary: dict[str, float]
     x_axis: str = ENV_STEPS
     dataset: str | None = None  # offline runs: what they learned from
-    normalized_score: float | None = None  # offline runs: 0 = random policy, 100 = the dataset's
+    normalized_score: float | None = None  # offline runs: 0 = random policy, 100 = the expert's
+    #: offline runs: (random, expert, where they come from), the returns normalized scores use
+    references: tuple[float, float, str] | None = None
+    behaviour_return: float | None = None  # offline runs: the mean return in the dataset
 
 
 @dataclass
@@ -80,8 +83,22 @@ class AlgoResult:
         scores = [r.normalized_score for r in self.runs if r.normalized_score is not None]
         return float(np.mean(scores)) if scores else None
 
+    def normalized(self, value: float | None) -> float | None:
+        """``value`` (a return) as a normalized score on the arm's references (offline runs)."""
+        refs = self.runs[0].references
+        if refs is None or value is None or not np.isfinite(value) or refs[1] == refs[0]:
+            return None
+        return 100.0 * (value - refs[0]) / (refs[1] - refs[0])
+
+    @property
+    def normalized_iqm(self) -> tuple[float | None, float | None, float | None]:
+        """The IQM of the final returns and its CI as normalized scores (an affine map of the
+        returns, so the CI maps too)."""
+        return tuple(self.normalized(v) for v in self.iqm)
+
     def as_dict(self) -> dict:
         reached = np.isfinite(self.steps_to_threshold)
+        refs = self.runs[0].references
         return {
             "algorithm": self.algorithm,
             "group": self.arm.group_values if self.arm else {},
@@ -90,6 +107,12 @@ class AlgoResult:
             "x_axis": self.x_axis,
             "dataset": self.dataset,
             "normalized_score_mean": self.normalized_score_mean,
+            "normalized_iqm": dict(zip(("point", "low", "high"), self.normalized_iqm, strict=True)),
+            "references": dict(zip(("random", "expert", "source"), refs, strict=True))
+            if refs
+            else None,
+            "behaviour_return": self.runs[0].behaviour_return,
+            "behaviour_score": self.normalized(self.runs[0].behaviour_return),
             "run_ids": [r.run_id for r in self.runs],
             "score_mean": float(self.scores.mean()),
             "score_std": float(self.scores.std()),

@@ -120,8 +120,25 @@ def load_seed_runs(client, runs: list, threshold: float) -> dict[str, SeedRun]:
             x_axis=x_axis(run),
             dataset=run.data.tags.get("dataset"),
             normalized_score=run.data.metrics.get("final/normalized_score"),
+            references=_references(run.data.params),
+            behaviour_return=_float(run.data.params.get("dataset_stats.behaviour_return")),
         )
     return loaded
+
+
+def _float(value: str | None) -> float | None:
+    try:
+        return float(value)
+    except (TypeError, ValueError):  # absent, or "None"
+        return None
+
+
+def _references(params: dict) -> tuple[float, float, str] | None:
+    """An offline run's normalized-score references (random, expert, source), if it logged them."""
+    random, expert = (_float(params.get(f"normalized_score.{k}")) for k in ("random", "expert"))
+    if random is None or expert is None:
+        return None
+    return random, expert, params.get("normalized_score.references", "dataset")
 
 
 def published_figures(env_cfg, algorithms: list[str]) -> list[dict]:

@@ -72,13 +72,6 @@ class OfflineData:
     def steps(self) -> int:
         return sum(len(e.rewards) for e in self.episodes)
 
-    def normalized(self, episode_return: float) -> float | None:
-        """100 * (R - random) / (behaviour - random); None without both references."""
-        low, high = self.random_return, self.behaviour_return
-        if low is None or high is None or high == low:
-            return None
-        return 100.0 * (episode_return - low) / (high - low)
-
 
 def load(name: str) -> OfflineData:
     """The local dataset ``name``; if it is missing, a :class:`ConfigError` listing the others."""

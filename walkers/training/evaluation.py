@@ -4,6 +4,7 @@ return-conditioned agent (the Decision Transformer), greedy episodes per target 
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import gymnasium as gym
 import numpy as np
@@ -13,8 +14,42 @@ from walkers.training.rollout import run_episodes
 
 #: (agent, eval env, start seeds) -> (returns of the headline evaluation, extra metrics)
 Evaluation = Callable[[Agent, gym.Env, list[int]], tuple[np.ndarray, dict[str, float]]]
-#: A return -> its normalized score (0: a random policy, 100: the dataset's behaviour), or None.
+#: A return -> its normalized score (0: a random policy, 100: the expert reference), or None.
 Normalize = Callable[[float], float | None]
+
+
+@dataclass(frozen=True)
+class References:
+    """The two returns an offline run's normalized score 100 x (R - random) / (expert - random)
+    is measured between. ``source`` says where they come from: ``env`` (``scores.random`` and
+    ``scores.expert`` of ``conf/env/<env>.yaml``, measured by the platform once for every dataset
+    of the env, so that scores on different datasets compare, as D4RL's do) or ``dataset`` (a
+    random policy's and the behaviour policy's mean returns, measured when it was recorded)."""
+
+    random: float | None
+    expert: float | None
+    source: str
+
+    def normalized(self, episode_return: float) -> float | None:
+        """The normalized score of ``episode_return``; None without both references."""
+        if self.random is None or self.expert is None or self.expert == self.random:
+            return None
+        return 100.0 * (episode_return - self.random) / (self.expert - self.random)
+
+    def as_params(self) -> dict[str, object]:
+        return {
+            "normalized_score.random": self.random,
+            "normalized_score.expert": self.expert,
+            "normalized_score.references": self.source,
+        }
+
+
+def offline_references(env_cfg, data) -> References:
+    """The env's references where ``conf/env`` has both, else the dataset's own."""
+    scores = env_cfg.get("scores") or {}
+    if scores.get("random") is not None and scores.get("expert") is not None:
+        return References(float(scores["random"]), float(scores["expert"]), "env")
+    return References(data.random_return, data.behaviour_return, "dataset")
 
 
 def greedy_evaluation(agent: Agent, env: gym.Env, start_seeds: list[int]):
@@ -26,7 +61,8 @@ def per_target_return(normalize: Normalize) -> Evaluation:
     """Greedy episodes for each of ``agent.target_returns``: the first target is the headline
     (``eval/return_mean``); every target is also logged on its own
     (``eval/target_<R>/return_mean``) and, where the dataset has reference returns, as a
-    normalized score (``.../normalized_score``, and ``eval/normalized_score`` for the first)."""
+    normalized score (``.../normalized_score``, and ``eval/normalized_score`` for the first;
+    :func:`offline_references`)."""
 
     def evaluate(agent, env: gym.Env, start_seeds: list[int]):
         if not hasattr(agent, "target_returns"):  # not return-conditioned (td3bc): greedy
@@ -51,7 +87,7 @@ def per_target_return(normalize: Normalize) -> Evaluation:
 
 
 def with_normalized_score(normalize: Normalize) -> Callable[[dict], dict]:
-    """A run summary plus ``final/normalized_score`` where the dataset has reference returns."""
+    """A run summary plus ``final/normalized_score`` where there are reference returns."""
 
     def summarize(summary: dict[str, float]) -> dict[str, float]:
         score = normalize(summary.get("final/return_mean", float("nan")))

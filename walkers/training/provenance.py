@@ -11,6 +11,7 @@ import sys
 from omegaconf import DictConfig, OmegaConf
 
 from walkers import PROJECT_ROOT, tracking
+from walkers.training.evaluation import offline_references
 from walkers.tuning.studies import redacted
 
 #: Tag: the machine (and Ray node) that trains the run; a resumed run: the latest one.
@@ -106,10 +107,16 @@ def git_commit() -> str:
         return "unknown"
 
 
-def dataset_params(data) -> dict[str, str]:
-    """An offline run's dataset statistics, as params."""
+def dataset_params(data, env_cfg) -> dict[str, str]:
+    """An offline run's dataset statistics, as params, with the references its normalized scores
+    are measured between and the behaviour policy's own score on them."""
     returns = data.returns
+    references = offline_references(env_cfg, data)
+    behaviour = data.behaviour_return
+    behaviour_score = None if behaviour is None else references.normalized(behaviour)
     return {
+        **references.as_params(),
+        "dataset_stats.behaviour_score": behaviour_score and f"{behaviour_score:.2f}",
         "dataset_stats.episodes": len(data.episodes),
         "dataset_stats.steps": data.steps,
         "dataset_stats.return_mean": f"{returns.mean():.2f}",

@@ -127,7 +127,7 @@ class TrainingRun:
             else:
                 tracker.log_params(tracking.flatten(shareable(cfg)))
                 if data is not None:
-                    tracker.log_params(dataset_params(data))
+                    tracker.log_params(dataset_params(data, cfg.env))
             run._write_config(cfg)
         except BaseException:
             tracker.end(tracking.KILLED if cfg.resume else tracking.FAILED)

@@ -23,7 +23,11 @@ from walkers.errors import ConfigError
 from walkers.training import resume
 from walkers.training.bookkeeping import RunBook
 from walkers.training.envs import env_spaces, make_env
-from walkers.training.evaluation import per_target_return, with_normalized_score
+from walkers.training.evaluation import (
+    offline_references,
+    per_target_return,
+    with_normalized_score,
+)
 from walkers.training.loops import train_offline, train_online, train_population, train_sb3
 from walkers.training.provenance import MEMBER_TAG, POPULATION_TAG, shareable
 from walkers.training.run import ENV_STEP_AXIS, GRADIENT_STEP_AXIS, TrainingRun, ending
@@ -83,13 +87,14 @@ def _train_single(cfg: DictConfig, client, state: dict | None) -> dict[str, floa
         if isinstance(agent, SB3Twin):
             agent.attach(env, cfg.total_steps)  # SB3's model is built on its training env
         axis = GRADIENT_STEP_AXIS if data is not None else ENV_STEP_AXIS
+        references = offline_references(cfg.env, data) if data is not None else None
         runs = [TrainingRun.open(client, cfg, axis, data)]
         # From here on the run exists in MLflow: every way out sets its final status.
         with ending(runs):
             offline = (
                 {
-                    "evaluation": per_target_return(data.normalized),
-                    "summarize": with_normalized_score(data.normalized),
+                    "evaluation": per_target_return(references.normalized),
+                    "summarize": with_normalized_score(references.normalized),
                 }
                 if data is not None
                 else {}

@@ -26,6 +26,7 @@ from tests.conftest import (
 )
 from walkers.analysis.comparison import compare
 from walkers.data import datasets
+from walkers.data.datasets import OfflineData
 from walkers.data.replay import replay_episodes
 from walkers.errors import ConfigError
 from walkers.train import train
@@ -33,6 +34,7 @@ from walkers.training import checkpoints
 from walkers.training.checkpoints import agent_from_checkpoint
 from walkers.training.collection import collect, play
 from walkers.training.envs import make_env
+from walkers.training.evaluation import offline_references
 from walkers.training.validate import validate
 
 EXPERT = "walkers/pendulum/td3-v0"  # greedy TD3 episodes: returns from about -1500 to 0
@@ -225,8 +227,10 @@ def test_dt_clearly_beats_a_random_policy(offline):
     final = _last(offline, run, "eval/return_mean")  # conditioned on HIGH
     print("DT", final, "random policy", data.random_return, "dataset", data.returns.mean())
     assert final > data.random_return + 500
-    score = _last(offline, run, "eval/normalized_score")
-    assert score == pytest.approx(data.normalized(final))
+    score = _last(offline, run, "eval/normalized_score")  # Pendulum has no expert in conf/env:
+    low, high = data.random_return, data.behaviour_return  # the dataset's own references
+    assert score == pytest.approx(100 * (final - low) / (high - low))
+    assert run.data.params["normalized_score.references"] == "dataset"
     assert score > 50  # at least half way from a random policy to the dataset's policy
 
 
@@ -261,8 +265,59 @@ def test_report_puts_dt_beside_td3(offline, tmp_path):
     assert summary["algos"]["dt"]["dataset"] == EXPERT
     normalized = _last(offline, _run(offline, "dt"), "final/normalized_score")
     assert summary["algos"]["dt"]["normalized_score_mean"] == pytest.approx(normalized)
-    assert "dt: final normalized score" in report
+    dt_summary = summary["algos"]["dt"]
+    assert dt_summary["references"]["source"] == "dataset"
+    low, high = dt_summary["references"]["random"], dt_summary["references"]["expert"]
+    iqm = dt_summary["iqm"]
+    assert dt_summary["normalized_iqm"]["point"] == pytest.approx(100 * (iqm - low) / (high - low))
+    assert dt_summary["behaviour_score"] == pytest.approx(100)  # the behaviour is the reference
+    assert f"dt (offline, {EXPERT}): normalized score" in report
+    assert "the data's behaviour policy: return" in report
     assert (out / "learning_curves.png").stat().st_size > 0
+
+
+def test_env_references_make_scores_on_different_datasets_compare():
+    """conf/env's scores.random and scores.expert, where both are set, outrank a dataset's own."""
+    data = OfflineData("d", "Walker2d-v5", [], random_return=-5.0, behaviour_return=900.0)
+    walker = compose_cfg(["env=walker2d", "env.scores.expert=4000", "env.scores.random=0"]).env
+    references = offline_references(walker, data)
+    assert (references.source, references.normalized(0), references.normalized(4000)) == (
+        "env",
+        0,
+        100,
+    )
+    pendulum = compose_cfg(["env=pendulum"]).env  # no expert: the dataset's random and behaviour
+    own = offline_references(pendulum, data)
+    assert own.source == "dataset" and own.normalized(900.0) == 100 and own.normalized(-5.0) == 0
+    unknown = OfflineData("d", None, [], None, None)
+    assert offline_references(pendulum, unknown).normalized(1) is None
+
+
+def test_replay_steps_keep_what_the_run_saw_first(offline):
+    """replay_steps=N: the episodes of the run's first N env steps (a medium-replay dataset)."""
+    run_id = offline["td3_run"].info.run_id
+    overrides = [f"run_id={run_id}", "replay=true", "log_to_mlflow=false", *offline["overrides"]]
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("MINARI_DATASETS_PATH", str(offline["minari_root"]))
+        stats = collect(
+            compose_cfg(
+                [*overrides, "replay_steps=1000", "dataset=walkers/pendulum/first-1000"],
+                config_name="collect",
+            )
+        )
+        trained = [
+            m.value for m in offline["client"].get_metric_history(run_id, "train/episode_return")
+        ]
+        assert stats["episodes"] == 5 and stats["steps"] == 1000  # 200-step episodes
+        data = datasets.load("walkers/pendulum/first-1000")
+        np.testing.assert_allclose(data.returns, trained[:5], rtol=1e-5)
+        for bad, message in [
+            ("replay_steps=9000", "replay_steps=9000 is not allowed: must be between 1 and"),
+            ("replay_steps=0", "replay_steps=0 is not allowed: an integer > 0, with replay=true"),
+        ]:
+            with pytest.raises(ConfigError, match=message):
+                collect(compose_cfg([*overrides, bad, "dataset=x"], config_name="collect"))
+        assert not datasets.exists("x")
 
 
 def test_dt_run_counts_gradient_steps_and_resumes(offline):

@@ -74,6 +74,9 @@ bench: $(STAMP)  ## benchmarks: the TD3 update vs a plain eager implementation, 
 bench-throughput: $(STAMP)  ## env steps/s of walkers TD3/DDPG/SAC/CrossQ/PPO/REINFORCE vs Stable-Baselines3 (and sb3-contrib) on Walker2d
 	$(PY) benchmarks/bench_throughput.py $(ARGS)
 
+bench-dt: $(STAMP)  ## the Decision Transformer's gradient step at its reference size, per device (ARGS="--devices cpu,cuda")
+	$(PY) benchmarks/bench_dt.py $(ARGS)
+
 bench-learning: $(STAMP)  ## walkers vs its Stable-Baselines3 twins through the platform: impl=walkers,sb3 x seeds, then a group_by=impl report (BENCH_ALGOS=td3,sac BENCH_ENV=walker2d BENCH_STEPS=100000 BENCH_SEEDS=3; quick: BENCH_ENV=pendulum BENCH_STEPS=15000)
 	$(PY) -m walkers.train -m algo=$(BENCH_ALGOS) impl=walkers,sb3 env=$(BENCH_ENV) 'seed=range($(BENCH_SEEDS))' total_steps=$(BENCH_STEPS) torch_threads=1 progress=false tracking.experiment=$(BENCH_EXPERIMENT) hydra/launcher=joblib hydra.launcher.n_jobs=2 $(ARGS)
 	$(PY) -m walkers.compare env=$(BENCH_ENV) algos=[$(BENCH_ALGOS)] group_by=impl total_steps=$(BENCH_STEPS) tracking.experiment=$(BENCH_EXPERIMENT)
@@ -103,4 +106,4 @@ clean:  ## remove run outputs (mlflow.db, mlartifacts/, outputs/, multirun/, .wa
 	rm -rf mlflow.db mlruns mlartifacts outputs multirun .walkers reports .pytest_cache .ruff_cache
 	find . -name __pycache__ -type d -prune -not -path './$(VENV)/*' -exec rm -rf {} +
 
-.PHONY: help install train ab ab-all study offline compare plan dashboard bench-sequential ui-check test test-cluster chaos stack bench bench-throughput bench-learning bench-scale menus lint ui clean
+.PHONY: help install train ab ab-all study offline compare plan dashboard bench-sequential ui-check test test-cluster chaos stack bench bench-throughput bench-dt bench-learning bench-scale menus lint ui clean

@@ -16,6 +16,11 @@ def test_round_trip_and_no_temp_files_left(tmp_path):
     path = checkpoints.save({"weights": torch.arange(5)}, tmp_path / "last.pt")
     assert torch.equal(checkpoints.load(path)["weights"], torch.arange(5))
     assert [p.name for p in tmp_path.iterdir()] == ["last.pt"]
+    # a write killed mid-way (SIGKILL: no cleanup runs) left its temporary file: the next one goes
+    (tmp_path / ".last.pt.9pqojf4h.tmp").write_bytes(b"half a checkpoint")
+    (tmp_path / ".best.pt.x.tmp").write_bytes(b"another checkpoint's, being written")
+    checkpoints.save({"weights": torch.arange(6)}, tmp_path / "last.pt")
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".best.pt.x.tmp", "last.pt"]
 
 
 @pytest.mark.parametrize("damage", ["truncate", "garbage", "not_walkers", "missing"])

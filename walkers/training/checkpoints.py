@@ -19,7 +19,8 @@ FORMAT_VERSION = 1
 def save(state: dict, path: str | os.PathLike) -> Path:
     """Write ``state`` to ``path`` via a temporary file and an atomic rename.
 
-    A crash mid-write leaves the previous checkpoint intact, never a truncated one.
+    A crash mid-write leaves the previous checkpoint intact, never a truncated one; the temporary
+    file a killed write left behind is removed by the next write of the same checkpoint.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -33,6 +34,8 @@ def save(state: dict, path: str | os.PathLike) -> Path:
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+    for stale in path.parent.glob(f".{path.name}.*.tmp"):  # of a write killed mid-way (SIGKILL)
+        stale.unlink(missing_ok=True)
     return path
 
 

@@ -155,7 +155,8 @@ def test_a_resume_without_the_buffer_says_so_and_refills_before_updating(
     assert final["num_updates"] - agent["num_updates"] == expected_updates
     assert final["buffer"]["size"] == final["steps"] - agent["steps"]  # refilled from empty
     (run,) = all_runs(store["client"])
-    assert run.data.tags["walkers.buffer_refill"] == f"steps {agent['steps']}-{first_update}"
+    refilled = f"steps {agent['steps']}-{first_update} ({expected})"
+    assert run.data.tags["walkers.buffer_refill"] == refilled
 
 
 def test_a_learning_rate_warm_up_longer_than_the_run_is_pointed_out(caplog):

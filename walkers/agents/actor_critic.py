@@ -26,7 +26,6 @@ as a single agent and loading it back is :mod:`walkers.agents.population`.
 from __future__ import annotations
 
 import copy
-import logging
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 
@@ -42,8 +41,6 @@ from walkers.agents.noise import GaussianNoise
 from walkers.agents.population import Member
 from walkers.data.replay import Batch, ReplayBuffer
 from walkers.seeding import numpy_rng, stream_seeds
-
-log = logging.getLogger("walkers")
 
 
 class ActorCritic(Agent):
@@ -256,7 +253,8 @@ class ActorCritic(Agent):
         Updating at once would fit the critics to the few transitions collected since (silently
         a different experiment). Instead the agent collects ``max(learning_starts, batch_size)``
         transitions first: of the current policy with exploration noise, or uniform random ones
-        if the run was interrupted in its warm-up (the warm-up restarts whole).
+        if the run was interrupted in its warm-up (the warm-up restarts whole). Silent here: an
+        agent restored only to act (walkers.evaluate, walkers.collect) never refills.
         """
         if "data" in buffer_state or buffer_state.get("size", 0) == 0:
             return
@@ -265,21 +263,18 @@ class ActorCritic(Agent):
         if in_warmup:
             self.random_until = self.steps + refill
         self.update_after = max(self.update_after, self.steps + refill)
-        self.refilled_at = self.steps
-        log.warning(
-            "resumed at step %d without the replay buffer's %d transitions: refilling %d "
-            "transitions (%s) before updating again at step %d",
-            self.steps,
-            buffer_state["size"],
-            refill,
-            "uniform random: the warm-up again" if in_warmup else "current policy with noise",
-            self.update_after,
+        self.refilled_at = self.steps  # the trainer says so when it resumes (resume_notes)
+        self.refill_kind = (
+            "uniform random: the warm-up again" if in_warmup else "current policy with noise"
         )
 
     def resume_notes(self) -> dict[str, str]:
         if self.refilled_at is None:
             return {}
-        return {"walkers.buffer_refill": f"steps {self.refilled_at}-{self.update_after}"}
+        return {
+            "walkers.buffer_refill": f"steps {self.refilled_at}-{self.update_after} "
+            f"({self.refill_kind})"
+        }
 
     # --- a population's members one at a time (walkers.agents.population) -------------------
     def member_cuts(self, i: int) -> dict[str, slice]:

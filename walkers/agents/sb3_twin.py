@@ -236,7 +236,9 @@ class SB3Twin(Agent):
         # the uploaded checkpoint has no buffer: refill it with uniform random actions first
         start = model.num_timesteps
         model.learning_starts = start + model.learning_starts
-        self.notes["walkers.buffer_refill"] = f"steps {start}-{model.learning_starts}"
+        self.notes["walkers.buffer_refill"] = (
+            f"steps {start}-{model.learning_starts} (uniform random: SB3's warm-up)"
+        )
 
     def resume_notes(self) -> dict[str, str]:
         return self.notes

@@ -111,6 +111,13 @@ class RunBook:
                 mark + 1,
             )
         if notes := self.agent.resume_notes():  # e.g. a replay buffer that had to be refilled
+            if refill := notes.get("walkers.buffer_refill"):
+                log.warning(
+                    "run %s resumed without the replay buffer's transitions: refilling them, "
+                    "%s, before updating again",
+                    self.run.run_id,
+                    refill,
+                )
             self.run.set_tags(notes)
 
     def save_checkpoint(self, name: str = "last.pt") -> None:

@@ -74,12 +74,9 @@ class OffPolicy(Replay):
 
 
 @dataclass
-class TD3Hyperparameters(OffPolicy):
-    """TD3 (Fujimoto et al. 2018, "Addressing Function Approximation Error in Actor-Critic
-    Methods"). Defaults are the reference implementation's."""
+class TD3Ideas(Hyperparameters):
+    """TD3's target policy smoothing and delayed policy updates (TD3 and TD3+BC)."""
 
-    AGENT = "walkers.agents.td3.TD3"
-    NAME = "td3"
     policy_noise: float = hp(
         0.2,
         NON_NEGATIVE,
@@ -87,6 +84,15 @@ class TD3Hyperparameters(OffPolicy):
     )
     noise_clip: float = hp(0.5, NON_NEGATIVE, "clip of that noise (same units)")
     policy_delay: int = hp(2, POSITIVE_INT, "critic updates per actor/target update")
+
+
+@dataclass
+class TD3Hyperparameters(TD3Ideas, OffPolicy):
+    """TD3 (Fujimoto et al. 2018, "Addressing Function Approximation Error in Actor-Critic
+    Methods"). Defaults are the reference implementation's."""
+
+    AGENT = "walkers.agents.td3.TD3"
+    NAME = "td3"
     exploration_noise: float = hp(
         0.1,
         NON_NEGATIVE,
@@ -397,7 +403,7 @@ class DecisionTransformerHyperparameters(Hyperparameters):
 
 
 @dataclass
-class TD3BCHyperparameters(Hyperparameters):
+class TD3BCHyperparameters(TD3Ideas):
     """TD3+BC (Fujimoto & Gu 2021, "A Minimalist Approach to Offline Reinforcement Learning"):
     TD3 trained offline on a Minari dataset (e.g. one recorded by `python -m walkers.collect`),
     its actor loss -lambda Q(s, pi(s)) + (pi(s) - a)^2, lambda = alpha / mean |Q|.
@@ -417,13 +423,6 @@ class TD3BCHyperparameters(Hyperparameters):
     hidden_sizes: list[int] = hp([256, 256], LAYERS, "hidden layers of actor and critics")
     gamma: float = hp(0.99, DISCOUNT, "discount")
     tau: float = hp(0.005, DISCOUNT, "target networks: theta' <- tau * theta + (1 - tau) * theta'")
-    policy_noise: float = hp(
-        0.2,
-        NON_NEGATIVE,
-        "TD3's target policy smoothing noise std (fraction of the action range half-width)",
-    )
-    noise_clip: float = hp(0.5, NON_NEGATIVE, "clip of that noise (same units)")
-    policy_delay: int = hp(2, POSITIVE_INT, "critic updates per actor/target update")
     alpha: float = hp(
         2.5,
         POSITIVE,

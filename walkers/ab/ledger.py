@@ -92,6 +92,8 @@ def check_arms_unchanged(runs: list, spec: StudySpec, configs: Mapping[tuple[str
         place = spec.parse_job_key(run.data.tags.get(tracking.JOB_KEY_TAG, ""))
         if place is None or (place[0], place[1]) not in configs:
             continue
+        if not run.data.params:  # killed between its start and its config's logging: it
+            continue  # never trained, and has no configuration to hold the arm to
         arm, env, _ = place
         then, now = arm_config(run_params(run)), arm_config(configs[(arm, env)])
         changed = differing_keys([then, now])

@@ -16,9 +16,14 @@ METRIC_DIRECTIONS: dict[str, str] = {
     "final/return_mean": MAXIMIZE,  # the last evaluation's mean return
     "final/return_last10": MAXIMIZE,  # mean of the last 10 evaluations
     "final/auc": MAXIMIZE,  # mean eval return over the run: the rate of learning
-    "final/normalized_score": MAXIMIZE,  # offline runs: 0 = random policy, 100 = the dataset's
+    "final/normalized_score": MAXIMIZE,  # offline runs: 0 = a random policy, 100 = the expert
     "final/steps_to_threshold": MINIMIZE,  # first env step at env.threshold; inf: never reached
 }
+
+
+def normalized_score(score: float, random: float, reference: float) -> float:
+    """rliable's and D4RL's normalized score: 0 is a random policy, 100 the reference score."""
+    return 100.0 * (score - random) / (reference - random)
 
 
 def allowed_metrics() -> str:

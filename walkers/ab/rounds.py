@@ -12,9 +12,9 @@ from walkers.analysis.sequential import (
     Question,
     answer,
     next_look_seeds,
-    normalized,
     suite_scores,
 )
+from walkers.metrics import normalized_score
 
 #: Finished scores: (arm, env) -> {seed: score}
 Scores = Mapping[tuple[str, str], Mapping[int, float]]
@@ -55,7 +55,7 @@ def standing(spec: StudySpec, scores: Scores) -> Standing:
     design = spec.design()
     norm = {
         (arm.name, env): [
-            normalized(s, spec.scores[env].random, spec.scores[env].reference)
+            normalized_score(s, spec.scores[env].random, spec.scores[env].reference)
             for s in contiguous(scores.get((arm.name, env), {}))
         ]
         for arm in spec.arms

@@ -11,6 +11,7 @@ import numpy as np
 
 from walkers.analysis.arms import Arm
 from walkers.analysis.power import PairPower
+from walkers.metrics import normalized_score
 from walkers.tracking.names import ENV_STEPS, GRADIENT_STEPS
 
 AXIS_NAMES = {ENV_STEPS: "env steps", GRADIENT_STEPS: "gradient steps"}
@@ -88,7 +89,7 @@ class AlgoResult:
         refs = self.runs[0].references
         if refs is None or value is None or not np.isfinite(value) or refs[1] == refs[0]:
             return None
-        return 100.0 * (value - refs[0]) / (refs[1] - refs[0])
+        return normalized_score(value, refs[0], refs[1])
 
     @property
     def normalized_iqm(self) -> tuple[float | None, float | None, float | None]:

@@ -192,11 +192,6 @@ class Question:
         return f"{self.a} vs {self.b} on {self.env or 'the suite (aggregate)'}"
 
 
-def normalized(score: float, random: float, reference: float) -> float:
-    """rliable's normalized score: 0 is a random policy, 100 the reference score."""
-    return 100.0 * (score - random) / (reference - random)
-
-
 def suite_scores(per_env: Mapping[str, Sequence[float]]) -> list[float]:
     """Per seed, the mean normalized score over the envs, for the seeds every env has."""
     n = min(len(v) for v in per_env.values())

@@ -10,6 +10,7 @@ import gymnasium as gym
 import numpy as np
 
 from walkers.agents.base import Agent
+from walkers.metrics import normalized_score
 from walkers.training.rollout import run_episodes
 
 #: (agent, eval env, start seeds) -> (returns of the headline evaluation, extra metrics)
@@ -34,7 +35,7 @@ class References:
         """The normalized score of ``episode_return``; None without both references."""
         if self.random is None or self.expert is None or self.expert == self.random:
             return None
-        return 100.0 * (episode_return - self.random) / (self.expert - self.random)
+        return normalized_score(episode_return, self.random, self.expert)
 
     def as_params(self) -> dict[str, object]:
         return {
@@ -65,10 +66,6 @@ def per_target_return(normalize: Normalize) -> Evaluation:
     :func:`offline_references`)."""
 
     def evaluate(agent, env: gym.Env, start_seeds: list[int]):
-        if not hasattr(agent, "target_returns"):  # not return-conditioned (td3bc): greedy
-            returns = run_episodes(agent, env, start_seeds)
-            score = normalize(float(returns.mean()))
-            return returns, {} if score is None else {"eval/normalized_score": score}
         extra, headline = {}, None
         for target in agent.target_returns:
             agent.target_return = target
@@ -84,6 +81,26 @@ def per_target_return(normalize: Normalize) -> Evaluation:
         return headline, extra
 
     return evaluate
+
+
+def scored_greedy(normalize: Normalize) -> Evaluation:
+    """Greedy episodes and their ``eval/normalized_score``: an offline policy that is not
+    return-conditioned (TD3+BC)."""
+
+    def evaluate(agent, env: gym.Env, start_seeds: list[int]):
+        returns = run_episodes(agent, env, start_seeds)
+        score = normalize(float(returns.mean()))
+        return returns, {} if score is None else {"eval/normalized_score": score}
+
+    return evaluate
+
+
+def offline_evaluation(agent: Agent, normalize: Normalize) -> Evaluation:
+    """How an offline agent is evaluated: per target return if it is return-conditioned (DT),
+    else greedily; both with normalized scores."""
+    if hasattr(agent, "target_returns"):
+        return per_target_return(normalize)
+    return scored_greedy(normalize)
 
 
 def with_normalized_score(normalize: Normalize) -> Callable[[dict], dict]:

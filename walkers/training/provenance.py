@@ -116,7 +116,9 @@ def dataset_params(data, env_cfg) -> dict[str, str]:
     behaviour_score = None if behaviour is None else references.normalized(behaviour)
     return {
         **references.as_params(),
-        "dataset_stats.behaviour_score": behaviour_score and f"{behaviour_score:.2f}",
+        "dataset_stats.behaviour_score": None
+        if behaviour_score is None
+        else f"{behaviour_score:.2f}",
         "dataset_stats.episodes": len(data.episodes),
         "dataset_stats.steps": data.steps,
         "dataset_stats.return_mean": f"{returns.mean():.2f}",

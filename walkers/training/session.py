@@ -24,8 +24,8 @@ from walkers.training import resume
 from walkers.training.bookkeeping import RunBook
 from walkers.training.envs import env_spaces, make_env
 from walkers.training.evaluation import (
+    offline_evaluation,
     offline_references,
-    per_target_return,
     with_normalized_score,
 )
 from walkers.training.loops import train_offline, train_online, train_population, train_sb3
@@ -93,7 +93,7 @@ def _train_single(cfg: DictConfig, client, state: dict | None) -> dict[str, floa
         with ending(runs):
             offline = (
                 {
-                    "evaluation": per_target_return(references.normalized),
+                    "evaluation": offline_evaluation(agent, references.normalized),
                     "summarize": with_normalized_score(references.normalized),
                 }
                 if data is not None

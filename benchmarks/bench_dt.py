@@ -18,6 +18,7 @@ import time
 import numpy as np
 import torch
 from rounds import alternate, print_table
+from torch import nn
 
 from walkers.agents.dt import DecisionTransformer
 from walkers.agents.factory import defaults_for
@@ -42,6 +43,37 @@ def walker2d_shaped_data(seed: int = 0) -> OfflineData:
     return OfflineData("synthetic", "Walker2d-v5", episodes, None, None)
 
 
+class TorchEncoderBlocks(nn.Module):
+    """torch's ``nn.TransformerEncoder`` in place of walkers' blocks and final LayerNorm."""
+
+    def __init__(self, embed_dim: int, n_heads: int, n_layers: int, dropout: float):
+        super().__init__()
+        layer = nn.TransformerEncoderLayer(
+            embed_dim, n_heads, 4 * embed_dim, dropout, "relu", batch_first=True, norm_first=True
+        )
+        self.encoder = nn.TransformerEncoder(
+            layer, n_layers, norm=nn.LayerNorm(embed_dim), enable_nested_tensor=False
+        )
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        mask = nn.Transformer.generate_square_subsequent_mask(x.shape[1], device=x.device)
+        return self.encoder(x, mask=mask, is_causal=True)
+
+
+def with_torch_encoder(agent: DecisionTransformer, hyperparameters: dict) -> DecisionTransformer:
+    """``agent`` with torch's encoder for its blocks, and a new optimizer over the new weights."""
+    h = hyperparameters
+    model = agent.model
+    model.blocks = TorchEncoderBlocks(h["embed_dim"], h["n_heads"], h["n_layers"], h["dropout"])
+    model.final_ln = nn.Identity()
+    model.to(agent.device)
+    agent.optimizer = torch.optim.AdamW(
+        model.parameters(), lr=h["lr"], weight_decay=h["weight_decay"], fused=True
+    )
+    agent.scheduler = torch.optim.lr_scheduler.LambdaLR(agent.optimizer, lambda step: 1.0)
+    return agent
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--devices", default="cpu", help="comma-separated, e.g. cpu,cuda")
@@ -49,17 +81,19 @@ def main():
     parser.add_argument("--steps", type=int, default=20, help="gradient steps per round")
     args = parser.parse_args()
     data = walker2d_shaped_data()
-    agents = {
-        f"walkers DT on {device}": DecisionTransformer(
-            OBS,
-            [-1.0] * ACT,
-            [1.0] * ACT,
-            dataset=data,
-            device=device,
-            **defaults_for(DecisionTransformer, max_episode_steps=STEPS),
-        )  # fmt: skip
-        for device in args.devices.split(",")
-    }
+    hyperparameters = defaults_for(DecisionTransformer, max_episode_steps=STEPS)
+
+    def agent(device: str) -> DecisionTransformer:
+        return DecisionTransformer(
+            OBS, [-1.0] * ACT, [1.0] * ACT, dataset=data, device=device, **hyperparameters
+        )
+
+    agents = {}
+    for device in args.devices.split(","):
+        agents[f"walkers DT on {device}"] = agent(device)
+        agents[f"torch TransformerEncoder on {device}"] = with_torch_encoder(
+            agent(device), hyperparameters
+        )
 
     def ms_per_step(agent) -> float:
         sync = torch.cuda.synchronize if agent.device.type == "cuda" else (lambda: None)

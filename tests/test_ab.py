@@ -4,6 +4,7 @@ of the driver, and the rerun that picks up where it stopped."""
 from __future__ import annotations
 
 import collections
+import re
 
 import pytest
 
@@ -63,6 +64,15 @@ def test_an_obvious_difference_stops_at_the_minimum_seeds_and_a_rerun_runs_nothi
     assert parent.data.tags["answer.short_vs_long_on_pendulum"] == "A better"
     assert "short is better than long on pendulum (5 seeds per arm" in result.stdout
     assert "?workflowType=machine_learning" in result.stdout  # the link opens the runs view
+    for arm in ("short", "long"):  # what each arm cost: the sum of its runs' own counts
+        spent = sum(
+            r.data.metrics["final/cpu_hours"]
+            for r in runs
+            if f"/{arm}/" in r.data.tags["walkers.job_key"]
+        )
+        assert parent.data.metrics[f"ab/cpu_hours.{arm}"] == pytest.approx(spent) and spent > 0
+    spent_line = r"CPU-hours of the finished runs: (short|long) [0-9.e-]+, (long|short) [0-9.e-]+\n"
+    assert re.search(spent_line, result.stdout)
 
     again = run_cli(study(store, *OBVIOUS), cwd=store["path"])
     assert again.returncode == 0, again.stderr[-3000:]

@@ -95,6 +95,9 @@ def test_compare_reports_every_seed_and_leaves_out_the_rest(ab_store, tmp_path):
         result = next(a for a in comparison.algos if a.algo == algo)
         np.testing.assert_allclose(sorted(result.scores), logged)
         assert summary["algos"][algo]["score_mean"] == pytest.approx(np.mean(logged))
+        spent = sum(r.data.metrics["final/cpu_hours"] for r in runs)  # each run's own count
+        assert spent > 0 and summary["algos"][algo]["cpu_hours"] == pytest.approx(spent)
+        assert summary["algos"][algo]["cpu_hours_runs"] == len(runs)
     assert [p["quantity"] for p in summary["pairs"]] == ["score", "auc"]
     left_out = " ".join(summary["left_out"])
     assert "Hopper-v5: 1" in left_out and "RUNNING" in left_out

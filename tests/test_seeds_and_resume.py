@@ -125,6 +125,9 @@ def test_an_interrupted_run_resumes_with_its_replay_buffer(store):
     assert final["agent"]["num_updates"] == interrupted["agent"]["num_updates"] + 100
     (run,) = all_runs(store["client"])
     assert run.info.status == "FINISHED" and "walkers.buffer_refill" not in run.data.tags
+    spent = interrupted["trainer"]["cpu_seconds"]  # the CPU time counts on across the resume
+    assert 0 < spent / 3600 < run.data.metrics["final/cpu_hours"]
+    assert run.data.metrics["final/cpu_hours"] <= final["trainer"]["cpu_seconds"] / 3600
 
 
 @pytest.mark.parametrize(

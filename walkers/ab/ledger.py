@@ -85,6 +85,32 @@ def finished_scores(runs: list, spec: StudySpec) -> Scores:
     return scores
 
 
+def cpu_hours(runs: list, spec: StudySpec) -> dict[str, tuple[float, int, int]]:
+    """arm -> (the CPU-hours of its FINISHED runs that counted them, how many did, how many
+    FINISHED): what the study cost so far, over every env and seed."""
+    hours: dict[str, tuple[float, int, int]] = {}
+    for run in runs:
+        place = spec.parse_job_key(run.data.tags.get(tracking.JOB_KEY_TAG, ""))
+        if place is None or run.info.status != tracking.FINISHED:
+            continue
+        total, counted, finished = hours.get(place[0], (0.0, 0, 0))
+        spent = run.data.metrics.get("final/cpu_hours")
+        if spent is not None:
+            total, counted = total + spent, counted + 1
+        hours[place[0]] = (total, counted, finished + 1)
+    return hours
+
+
+def cpu_hours_line(hours: dict[str, tuple[float, int, int]]) -> str:
+    """``CPU-hours of the finished runs: td3 12.31, reinforce 1.20 (4 of 5 runs counted)``."""
+    parts = [
+        f"{arm} {total:.3g}"
+        + (f" ({counted} of {finished} runs counted)" if counted < finished else "")
+        for arm, (total, counted, finished) in hours.items()
+    ]
+    return "CPU-hours of the finished runs: " + (", ".join(parts) if parts else "none yet")
+
+
 def check_arms_unchanged(runs: list, spec: StudySpec, configs: Mapping[tuple[str, str], dict]):
     """Refuse, in one line, an arm whose configuration is not that of its runs so far (the
     study file edited): a changed arm is a new arm, under a new name."""
@@ -107,11 +133,17 @@ def check_arms_unchanged(runs: list, spec: StudySpec, configs: Mapping[tuple[str
             )
 
 
-def log_standing(tracker: tracking.Tracker, standing: Standing, seeds_run: int) -> None:
-    """One round's interim answers on the study's run."""
+def log_standing(
+    tracker: tracking.Tracker,
+    standing: Standing,
+    seeds_run: int,
+    hours: dict[str, tuple[float, int, int]],
+) -> None:
+    """One round's interim answers, and the CPU-hours spent per arm, on the study's run."""
     step = max(standing.look, 0)
     open_ = sum(not q.answer.settled for q in standing.questions)
-    tracker.log_metrics({"ab/questions_open": open_, "ab/seeds_run": seeds_run}, step=step)
+    spent = {f"ab/cpu_hours.{arm}": total for arm, (total, _, _) in hours.items()}
+    tracker.log_metrics({"ab/questions_open": open_, "ab/seeds_run": seeds_run} | spent, step=step)
     tracker.set_tags({f"answer.{_tag(q.name)}": q.answer.decision for q in standing.questions})
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / f"look_{step}.md"

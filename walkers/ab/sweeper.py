@@ -101,11 +101,14 @@ class ABStudySweeper(Sweeper):
     # --- the rounds ---------------------------------------------------------------------------
     def _rounds(self, client, experiment: str, spec: StudySpec, base: list[str], study):
         while True:
-            scores = ledger.finished_scores(ledger.job_runs(client, experiment, spec), spec)
+            runs = ledger.job_runs(client, experiment, spec)
+            scores = ledger.finished_scores(runs, spec)
             now = standing(spec, scores)
-            ledger.log_standing(study, now, sum(len(v) for v in scores.values()))
+            hours = ledger.cpu_hours(runs, spec)
+            ledger.log_standing(study, now, sum(len(v) for v in scores.values()), hours)
             jobs = now.missing(scores)
             if not jobs:
+                log.info("%s", ledger.cpu_hours_line(hours))
                 return now
             log.info(
                 "study %r, look %d: %d of %d questions open; launching %d jobs",

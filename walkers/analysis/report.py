@@ -215,6 +215,14 @@ def _title(c: Comparison) -> str:
     return f"# {' vs '.join(r.algo for r in c.algos)} on {c.env_id}"
 
 
+def _cpu_hours(d: dict) -> str:
+    """The arm's CPU-hours, saying so when only some of its runs counted them."""
+    hours, counted, seeds = d["cpu_hours"], d["cpu_hours_runs"], d["seeds"]
+    if not counted:
+        return "-"
+    return f"{hours:.3g}" if counted == seeds else f"{hours:.3g} ({counted} of {seeds} runs)"
+
+
 def markdown(c: Comparison, source: str) -> str:
     level = f"{c.confidence:.0%}"
     out = [_title(c), "", verdict(c), ""]
@@ -228,8 +236,8 @@ def markdown(c: Comparison, source: str) -> str:
         "## Per arm",
         "",
         f"| arm | seeds | {c.score} mean ± std | IQM [{level} CI] | AUC mean ± std "
-        "| steps to threshold (median) | seeds reaching it |",
-        "|---|---|---|---|---|---|---|",
+        "| steps to threshold (median) | seeds reaching it | CPU-hours |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for r in c.algos:
         d = r.as_dict()
@@ -237,7 +245,7 @@ def markdown(c: Comparison, source: str) -> str:
             f"| {r.label} | {d['seeds']} | {_num(d['score_mean'])} ± {_num(d['score_std'])} "
             f"| {_interval(*r.iqm)} | {_num(d['auc_mean'])} ± {_num(d['auc_std'])} "
             f"| {_steps(d['steps_to_threshold_median'], r.x_axis)} "
-            f"| {d['threshold_reached']}/{d['seeds']} |"
+            f"| {d['threshold_reached']}/{d['seeds']} | {_cpu_hours(d)} |"
         )
     out += _published_section(c)
     out += _arms_section(c)

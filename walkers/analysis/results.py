@@ -44,6 +44,7 @@ class SeedRun:
     #: offline runs: (random, expert, where they come from), the returns normalized scores use
     references: tuple[float, float, str] | None = None
     behaviour_return: float | None = None  # offline runs: the mean return in the dataset
+    cpu_hours: float | None = None  # the run's process CPU time (runs logged before: None)
 
 
 @dataclass
@@ -97,6 +98,12 @@ class AlgoResult:
         returns, so the CI maps too)."""
         return tuple(self.normalized(v) for v in self.iqm)
 
+    @property
+    def cpu_hours(self) -> tuple[float, int]:
+        """The CPU-hours of the arm's runs that counted them, and how many did."""
+        counted = [r.cpu_hours for r in self.runs if r.cpu_hours is not None]
+        return float(sum(counted)), len(counted)
+
     def as_dict(self) -> dict:
         reached = np.isfinite(self.steps_to_threshold)
         refs = self.runs[0].references
@@ -124,6 +131,8 @@ class AlgoResult:
             "auc_std": float(self.auc.std()),
             "threshold_reached": int(reached.sum()),
             "steps_to_threshold_median": _finite_or_none(np.median(self.steps_to_threshold)),
+            "cpu_hours": self.cpu_hours[0],
+            "cpu_hours_runs": self.cpu_hours[1],
         }
 
 

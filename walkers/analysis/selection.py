@@ -122,6 +122,7 @@ def load_seed_runs(client, runs: list, threshold: float) -> dict[str, SeedRun]:
             normalized_score=run.data.metrics.get("final/normalized_score"),
             references=_references(run.data.params),
             behaviour_return=_float(run.data.params.get("dataset_stats.behaviour_return")),
+            cpu_hours=run.data.metrics.get("final/cpu_hours"),
         )
     return loaded
 

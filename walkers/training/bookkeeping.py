@@ -39,6 +39,8 @@ from walkers.training.video import write_gif
 
 log = logging.getLogger("walkers")
 
+CPU_HOURS = "perf/cpu_hours"
+
 #: Frames kept in the gif logged every ``video_every`` steps (a glance, not a film).
 TRAINING_GIF_FRAMES = 500
 
@@ -56,6 +58,9 @@ class Progress:
     eval_steps: list[int] = field(default_factory=list)
     eval_means: list[float] = field(default_factory=list)
     best_eval: float = -math.inf
+    #: process CPU time spent training the run, over all its sessions (a population member: its
+    #: share of the process); logged as ``perf/cpu_hours`` and ``final/cpu_hours``
+    cpu_seconds: float = 0.0
 
 
 class RunBook:
@@ -127,6 +132,7 @@ class RunBook:
         large); the local resume copy always does, so a resume on this machine is exact.
         """
         last = name == "last.pt"
+        self.cpu_hours()  # counted up to now, so a resume goes on from here
         state = {
             "trainer": dataclasses.asdict(self.progress),
             **torch_rng_state(),
@@ -174,9 +180,20 @@ class RunBook:
         )
 
     # --- after every step ---------------------------------------------------------------------
-    def start_clock(self, now: float) -> None:
-        """Throughput is measured from ``now`` (a ``time.perf_counter()``) at the current step."""
+    def start_clock(self, now: float, cpu_share: float = 1.0) -> None:
+        """Throughput is measured from ``now`` (a ``time.perf_counter()``) at the current step,
+        CPU time from here on, ``cpu_share`` of the process's (1/K for K members of a
+        population)."""
         self._log_step, self._log_time = self.progress.step, now
+        self._cpu_share, self._cpu_mark = cpu_share, time.process_time()
+
+    def cpu_hours(self) -> float:
+        """The run's CPU-hours so far: its checkpointed total plus this process's CPU time
+        (all its threads: torch's, the evaluation's) since the last count, times the share."""
+        now = time.process_time()
+        self.progress.cpu_seconds += (now - self._cpu_mark) * self._cpu_share
+        self._cpu_mark = now
+        return self.progress.cpu_seconds / 3600
 
     def after_step(self, losses: dict[str, torch.Tensor]) -> bool:
         """Log, evaluate, film, checkpoint when due; True when the run should stop early."""
@@ -186,7 +203,8 @@ class RunBook:
             rate = (p.step - self._log_step) / (now - self._log_time)
             self._log_step, self._log_time = p.step, now
             scalars = {k: v.item() for k, v in losses.items()}
-            self.run.log_metrics({self.axis.rate_metric: rate, **scalars}, p.step)
+            metrics = {self.axis.rate_metric: rate, CPU_HOURS: self.cpu_hours(), **scalars}
+            self.run.log_metrics(metrics, p.step)
             self._check_divergence(scalars)
         if p.step % s.eval_every == 0 or p.step == s.total_steps:
             mean = self.evaluate()
@@ -247,7 +265,7 @@ class RunBook:
         """Log the ``final/*`` summary (with ``rate`` and ``extra``), write last.pt, flush."""
         p = self.progress
         summary = self.summarize(run_summary(p.eval_steps, p.eval_means, self.threshold))
-        summary |= extra or {}
+        summary |= (extra or {}) | {"final/cpu_hours": self.cpu_hours()}
         if rate is not None:
             summary[self.axis.rate_metric] = rate
         self.run.log_metrics(summary, p.step)

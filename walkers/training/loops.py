@@ -185,7 +185,7 @@ def _running(
     )
     start_step, start = p.step, time.perf_counter()
     for book in books:
-        book.start_clock(start)
+        book.start_clock(start, cpu_share=1 / len(books))
     try:
         loop(bar)
     except KeyboardInterrupt:

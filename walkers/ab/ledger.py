@@ -11,6 +11,7 @@ count, one per key.
 from __future__ import annotations
 
 import logging
+import math
 import tempfile
 from collections.abc import Mapping
 from pathlib import Path
@@ -94,8 +95,8 @@ def cpu_hours(runs: list, spec: StudySpec) -> dict[str, tuple[float, int, int]]:
         if place is None or run.info.status != tracking.FINISHED:
             continue
         total, counted, finished = hours.get(place[0], (0.0, 0, 0))
-        spent = run.data.metrics.get("final/cpu_hours")
-        if spent is not None:
+        spent = run.data.metrics.get("final/cpu_hours", math.nan)  # nan: not counted throughout
+        if math.isfinite(spent):
             total, counted = total + spent, counted + 1
         hours[place[0]] = (total, counted, finished + 1)
     return hours

@@ -101,7 +101,9 @@ class AlgoResult:
     @property
     def cpu_hours(self) -> tuple[float, int]:
         """The CPU-hours of the arm's runs that counted them, and how many did."""
-        counted = [r.cpu_hours for r in self.runs if r.cpu_hours is not None]
+        counted = [
+            r.cpu_hours for r in self.runs if r.cpu_hours is not None and np.isfinite(r.cpu_hours)
+        ]
         return float(sum(counted)), len(counted)
 
     def as_dict(self) -> dict:

@@ -101,7 +101,8 @@ class RunBook:
     def restore(self, state: dict) -> None:
         """Continue from a checkpoint written by :meth:`save_checkpoint`."""
         self.agent.load_state_dict(state["agent"])
-        self.progress = Progress(**state["trainer"])
+        # a checkpoint from before runs counted their CPU time: the total is unknown, not 0
+        self.progress = Progress(**{"cpu_seconds": math.nan} | state["trainer"])
         self.last_checkpoint_step = self.progress.step
         restore_torch_rng(state)
         self._env_rng = state.get("env_rng")

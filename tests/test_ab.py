@@ -7,10 +7,13 @@ import collections
 import re
 
 import pytest
+from omegaconf import OmegaConf
 
-from tests.conftest import all_runs, one_line_error, run_cli
+from tests.conftest import all_runs, compose_cfg, one_line_error, run_cli
+from walkers import CONF_DIR
 from walkers.ab.spec import StudySpec
 from walkers.errors import ConfigError
+from walkers.training.validate import validate
 
 
 #: Two arms that cannot be confused: the same untrained REINFORCE, one with episodes half as
@@ -151,3 +154,17 @@ def test_the_study_declaration_is_checked_in_one_line(changed, expected):
 def test_a_study_without_multirun_is_refused(store):
     line = one_line_error(run_cli(["ab=tiny", *store["overrides"]], cwd=store["path"]))
     assert "ab=tiny is an A/B study: run it with -m" in line
+
+
+@pytest.mark.parametrize("name", sorted(p.stem for p in (CONF_DIR / "ab").glob("*.yaml")))
+def test_every_shipped_study_is_sound(name):
+    """Each study in conf/ab/ parses, can decide at its first look, and every arm composes and
+    validates on every env (what its sweeper checks before anything runs)."""
+    declared = OmegaConf.to_container(
+        OmegaConf.load(CONF_DIR / "ab" / f"{name}.yaml").hydra.sweeper
+    )
+    spec = StudySpec.parse(**declared)
+    assert spec.design().first_look_can_decide()
+    for arm in spec.arms:
+        for env in spec.envs:
+            validate(compose_cfg([*arm.overrides, f"env={env}"]))

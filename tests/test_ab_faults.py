@@ -14,13 +14,14 @@ from tests.conftest import all_runs, run_cli, spawn_cli
 from tests.test_ab import OBVIOUS, job_runs, study, study_run
 
 
-def wait_for_a_finished_job(store, proc) -> None:
-    """Block until one job of the study has FINISHED (the study is under way)."""
+def wait_for_a_job(store, proc, status: str) -> None:
+    """Block until a job of the study has a run of ``status`` (FINISHED: the study is under way;
+    RUNNING: a job is training), failing if the study ends or nothing comes in 4 minutes."""
     deadline = time.monotonic() + 240
-    while not any(r.info.status == "FINISHED" for r in job_runs(store)):
+    while not any(r.info.status == status for r in job_runs(store)):
         assert proc.poll() is None, proc.communicate()[0][-3000:]
         assert time.monotonic() < deadline
-        time.sleep(0.5)
+        time.sleep(0.2)
 
 
 @pytest.mark.parametrize("launcher", ["basic", "joblib"])
@@ -36,9 +37,10 @@ def test_a_rerun_after_kill_9_of_the_driver_finishes_every_seed_once(store, laun
     )
     proc = spawn_cli(args, cwd=store["path"], new_session=True)
     try:
-        wait_for_a_finished_job(store, proc)
-        time.sleep(1.0)
-        os.killpg(proc.pid, signal.SIGKILL)  # the driver and its workers, as a reboot would
+        wait_for_a_job(store, proc, "FINISHED")
+        wait_for_a_job(store, proc, "RUNNING")  # the next one under way (on loaded cores it
+        os.killpg(proc.pid, signal.SIGKILL)  # starts late), then the driver and its workers die
+        # together, as in a reboot
     finally:
         proc.kill()
         proc.communicate()
@@ -62,15 +64,16 @@ def test_a_terminated_study_ends_everything_it_started_and_reruns_to_its_answer(
     args = study(store, *OBVIOUS, "total_steps=3000", "checkpoint_every=500", "eval_every=500")
     proc = spawn_cli(args, cwd=store["path"], new_session=True)
     try:
-        wait_for_a_finished_job(store, proc)
+        wait_for_a_job(store, proc, "FINISHED")
         os.killpg(proc.pid, signal.SIGTERM)  # `kill -TERM -<pgid>`, scancel, timeout
         stdout, stderr = proc.communicate(timeout=180)
     finally:
         proc.kill()
     assert proc.returncode == 130, stderr[-3000:]
-    assert "interrupted: study 't' stopped" in stderr and "Traceback" not in stderr
+    assert "interrupted: study 't' stopped" in stderr and "Traceback" not in stderr, stderr[-3000:]
     statuses = collections.Counter(r.info.status for r in all_runs(store["client"]))
-    assert set(statuses) <= {"FINISHED", "KILLED"}, statuses  # the study, and a job if one ran
+    # the study, and a job if one ran
+    assert set(statuses) <= {"FINISHED", "KILLED"}, (statuses, stderr[-3000:])
     assert study_run(store).info.status == "KILLED"
 
     again = run_cli(args, cwd=store["path"])

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import collections
 import os
+import re
 import signal
 import time
 
@@ -12,13 +13,23 @@ import pytest
 
 from tests.conftest import all_runs, run_cli, spawn_cli
 from tests.test_ab import OBVIOUS, job_runs, study, study_run
+from walkers.tracking import LOGGED_THROUGH_TAG
 
 
-def wait_for_a_job(store, proc, status: str) -> None:
+def wait_for_a_job(store, proc, status: str, logged_below: int | None = None) -> None:
     """Block until a job of the study has a run of ``status`` (FINISHED: the study is under way;
-    RUNNING: a job is training), failing if the study ends or nothing comes in 4 minutes."""
+    RUNNING: a job is training), with ``logged_below`` one that has logged some steps and fewer
+    than that (far from its end, where its last flush comes just before FINISHED); failing if
+    the study ends or nothing comes in 4 minutes."""
+
+    def found(run) -> bool:
+        if run.info.status != status:
+            return False
+        mark = run.data.tags.get(LOGGED_THROUGH_TAG)
+        return logged_below is None or (mark is not None and int(mark) < logged_below)
+
     deadline = time.monotonic() + 240
-    while not any(r.info.status == status for r in job_runs(store)):
+    while not any(found(r) for r in job_runs(store)):
         assert proc.poll() is None, proc.communicate()[0][-3000:]
         assert time.monotonic() < deadline
         time.sleep(0.2)
@@ -38,17 +49,26 @@ def test_a_rerun_after_kill_9_of_the_driver_finishes_every_seed_once(store, laun
     proc = spawn_cli(args, cwd=store["path"], new_session=True)
     try:
         wait_for_a_job(store, proc, "FINISHED")
-        wait_for_a_job(store, proc, "RUNNING")  # the next one under way (on loaded cores it
-        os.killpg(proc.pid, signal.SIGKILL)  # starts late), then the driver and its workers die
-        # together, as in a reboot
+        # the next one under way (on loaded cores it starts late) and far from done, then the
+        # driver and its workers die together, as in a reboot
+        wait_for_a_job(store, proc, "RUNNING", logged_below=2000)
+        os.killpg(proc.pid, signal.SIGKILL)
     finally:
         proc.kill()
         proc.communicate()
     left = collections.Counter(r.info.status for r in job_runs(store))
     assert left["RUNNING"] >= 1, left  # what the kill left behind
+    partly_done = {
+        r.data.tags["walkers.job_key"]
+        for r in job_runs(store)
+        if r.info.status == "RUNNING" and LOGGED_THROUGH_TAG in r.data.tags
+    }
 
     result = run_cli(args, cwd=store["path"])
     assert result.returncode == 0, result.stderr[-3000:]
+    # the most work left goes first: the jobs partly done are launched after every fresh one
+    launched = re.findall(r"#\d+ : .*job_key=(\S+)", result.stdout + result.stderr)
+    assert partly_done and set(launched[-len(partly_done) :]) == partly_done, launched
     runs = job_runs(store)
     finished = [r.data.tags["walkers.job_key"] for r in runs if r.info.status == "FINISHED"]
     assert len(finished) == len(set(finished)) == 10, finished  # every seed once, none twice

@@ -86,6 +86,20 @@ def finished_scores(runs: list, spec: StudySpec) -> Scores:
     return scores
 
 
+def steps_logged(runs: list) -> dict[str, int]:
+    """job key -> the most steps an unfinished run of the job logged (what its resume goes on
+    from, about); jobs that never logged are absent."""
+    logged: dict[str, int] = {}
+    for run in runs:
+        key, mark = (
+            run.data.tags.get(tracking.JOB_KEY_TAG),
+            run.data.tags.get(tracking.LOGGED_THROUGH_TAG),
+        )
+        if key and mark is not None and run.info.status != tracking.FINISHED:
+            logged[key] = max(logged.get(key, 0), int(mark))
+    return logged
+
+
 def cpu_hours(runs: list, spec: StudySpec) -> dict[str, tuple[float, int, int]]:
     """arm -> (the CPU-hours of its FINISHED runs that counted them, how many did, how many
     FINISHED): what the study cost so far, over every env and seed."""

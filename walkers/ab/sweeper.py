@@ -110,6 +110,10 @@ class ABStudySweeper(Sweeper):
             if not jobs:
                 log.info("%s", ledger.cpu_hours_line(hours))
                 return now
+            # the most work left first (fresh jobs, then resumed ones by the steps they lack): a
+            # round ends with its last job, and a long one started last would run alone
+            logged = ledger.steps_logged(runs)
+            jobs.sort(key=lambda job: logged.get(spec.job_key(*job), 0))
             log.info(
                 "study %r, look %d: %d of %d questions open; launching %d jobs",
                 spec.name,

@@ -40,7 +40,7 @@ def test_a_rerun_after_kill_9_of_the_driver_finishes_every_seed_once(store, laun
     args = study(
         store,
         *OBVIOUS,
-        "total_steps=3000",
+        "total_steps=2000",
         "checkpoint_every=500",
         "eval_every=500",
         f"hydra/launcher={launcher}",
@@ -51,7 +51,7 @@ def test_a_rerun_after_kill_9_of_the_driver_finishes_every_seed_once(store, laun
         wait_for_a_job(store, proc, "FINISHED")
         # the next one under way (on loaded cores it starts late) and far from done, then the
         # driver and its workers die together, as in a reboot
-        wait_for_a_job(store, proc, "RUNNING", logged_below=2000)
+        wait_for_a_job(store, proc, "RUNNING", logged_below=1000)
         os.killpg(proc.pid, signal.SIGKILL)
     finally:
         proc.kill()
@@ -81,7 +81,7 @@ def test_a_rerun_after_kill_9_of_the_driver_finishes_every_seed_once(store, laun
 
 
 def test_a_terminated_study_ends_everything_it_started_and_reruns_to_its_answer(store):
-    args = study(store, *OBVIOUS, "total_steps=3000", "checkpoint_every=500", "eval_every=500")
+    args = study(store, *OBVIOUS, "total_steps=2000", "checkpoint_every=500", "eval_every=500")
     proc = spawn_cli(args, cwd=store["path"], new_session=True)
     try:
         wait_for_a_job(store, proc, "FINISHED")

@@ -109,6 +109,7 @@ class AlgoResult:
     def as_dict(self) -> dict:
         reached = np.isfinite(self.steps_to_threshold)
         refs = self.runs[0].references
+        hours, counted = self.cpu_hours
         return {
             "algorithm": self.algorithm,
             "group": self.arm.group_values if self.arm else {},
@@ -133,8 +134,8 @@ class AlgoResult:
             "auc_std": float(self.auc.std()),
             "threshold_reached": int(reached.sum()),
             "steps_to_threshold_median": _finite_or_none(np.median(self.steps_to_threshold)),
-            "cpu_hours": self.cpu_hours[0],
-            "cpu_hours_runs": self.cpu_hours[1],
+            "cpu_hours": hours,
+            "cpu_hours_runs": counted,
         }
 
 

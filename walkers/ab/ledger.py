@@ -50,8 +50,8 @@ def open_study_run(client, experiment: str, spec: StudySpec, spool_dir) -> track
     tracker = tracking.Tracker.start(client, experiment, f"ab-{spec.name}", tags, spool_dir)
     try:
         tracker.log_params(design)
-    except BaseException:
-        tracker.end(tracking.FAILED)
+    except BaseException as e:
+        tracker.end(tracking.status_after(e))
         raise
     return tracker
 

@@ -38,6 +38,7 @@ _HOMES = {
         "LOGGED_THROUGH_TAG",
         "PRUNED_TAG",
         "X_AXIS_TAG",
+        "status_after",
     ),
     "walkers.tracking.tracker": (
         "STORE_PATIENCE_S",

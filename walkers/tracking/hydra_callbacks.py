@@ -47,7 +47,7 @@ class PrepareTrackingStore(Callback):
         if error is None or isinstance(error, SystemExit):
             return  # every job returned (each ended its own runs), or bad input started none
         stop_remote_jobs()
-        status = tracking.KILLED if isinstance(error, KeyboardInterrupt) else tracking.FAILED
+        status = tracking.status_after(error)
         try:
             client = tracking.connect(config.tracking.uri)
             key = tracking.quoted(f"{config.hydra.sweep.dir}#%")  # this multirun's jobs

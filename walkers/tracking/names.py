@@ -5,6 +5,14 @@ from __future__ import annotations
 
 #: Statuses a run ends with.
 FINISHED, FAILED, KILLED = "FINISHED", "FAILED", "KILLED"
+
+
+def status_after(error: BaseException) -> str:
+    """The status of a run that ``error`` ended: KILLED after Ctrl-C (or SIGTERM turned into
+    it), wherever it landed, so that the same command continues it; FAILED after anything else."""
+    return KILLED if isinstance(error, KeyboardInterrupt) else FAILED
+
+
 #: Tag that marks runs which are not training runs (reports, sweep parents, datasets).
 KIND_TAG = "walkers.kind"
 #: Run tag naming what the step of a run's metrics counts; runs without it count env steps.

@@ -107,9 +107,9 @@ class TrainingRun:
 
         ``axis``: what the run's steps count; ``data``: an offline run's dataset; ``extra_tags``
         are set either way (a population member: its place in the population). If opening
-        fails, the run ends at once: a new run FAILED; a resumed run KILLED, as it was stopped
-        before it could go on, so that it can still be continued (a job run again after a store
-        hiccup continues it).
+        fails, the run ends at once: a new run FAILED (KILLED if a signal stopped it); a resumed
+        run KILLED, as it was stopped before it could go on, so that it can still be continued
+        (a job run again after a store hiccup continues it).
         """
         tags = (extra_tags or {}) | trial_tags(cfg)
         if cfg.resume:
@@ -129,8 +129,8 @@ class TrainingRun:
                 if data is not None:
                     tracker.log_params(dataset_params(data, cfg.env))
             run._write_config(cfg)
-        except BaseException:
-            tracker.end(tracking.KILLED if cfg.resume else tracking.FAILED)
+        except BaseException as e:  # a signal here ends a new run KILLED too: its job reruns
+            tracker.end(tracking.KILLED if cfg.resume else tracking.status_after(e))
             raise
         if cfg.tracking.get("system_metrics"):
             tracker.start_system_metrics(cfg.tracking.system_metrics_every)

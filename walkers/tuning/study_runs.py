@@ -30,7 +30,7 @@ def end_jobs_runs(client, experiment: str, job_keys: list[str], error: BaseExcep
     sweeper): its jobs still out there are stopped (a Ray driver's tasks end with it) and their
     runs left RUNNING are ended, KILLED after Ctrl-C, else FAILED, with the reason as a tag."""
     stop_remote_jobs()
-    status = tracking.KILLED if isinstance(error, KeyboardInterrupt) else tracking.FAILED
+    status = tracking.status_after(error)
     reason = f"its batch's launch ended: {type(error).__name__}: {error}"
     try:
         for key in job_keys:

@@ -53,7 +53,10 @@ plan: $(STAMP)  ## how many seeds a study needs, from pilot runs (ARGS="env=pend
 	$(PY) -m walkers.plan $(ARGS)
 
 test: $(STAMP)  ## run the test suite (real tiny trainings, sweeps, offline RL, reports; one worker per core)
-	$(PY) -m pytest -q -n auto --dist loadscope --durations=10 -m "not cluster and not browser" $(ARGS)
+	$(PY) -m pytest -q -n auto --dist loadscope --durations=10 -m "not cluster and not browser and not faults" $(ARGS)
+
+test-faults: $(STAMP)  ## the fault tests: kill -9 of a run and of a study's driver, SIGTERM to a process group, a tracking server that dies mid-run, a resume that cannot reopen its run (a few minutes; CI runs it after `make test`)
+	$(PY) -m pytest -q -n auto --dist loadscope --durations=5 -m faults $(ARGS)
 
 ui-check: $(STAMP)  ## the links walkers prints open MLflow's training view, in a real headless Chromium (installs Debian's chromium if missing)
 	@command -v chromium >/dev/null || (apt-get update -qq && apt-get install -y -qq chromium >/dev/null)

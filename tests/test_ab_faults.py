@@ -15,6 +15,8 @@ from tests.conftest import all_runs, run_cli, spawn_cli
 from tests.test_ab import OBVIOUS, job_runs, study, study_run
 from walkers.tracking import LOGGED_THROUGH_TAG
 
+pytestmark = pytest.mark.faults  # `make test-faults`, beside `make test` in CI
+
 
 def wait_for_a_job(store, proc, status: str, logged_below: int | None = None) -> None:
     """Block until a job of the study has a run of ``status`` (FINISHED: the study is under way;

@@ -39,6 +39,7 @@ def test_damaged_checkpoint_is_a_clear_error_naming_the_file(tmp_path, damage):
     assert str(path) in str(error.value)
 
 
+@pytest.mark.faults
 def test_kill_9_then_resume_finishes_at_the_right_step(store):
     args = [
         "env=pendulum",

@@ -7,6 +7,8 @@ import signal
 import subprocess
 import time
 
+import pytest
+
 from tests.conftest import (
     all_runs,
     run_cli,
@@ -15,6 +17,8 @@ from tests.conftest import (
 )
 from walkers import PROJECT_ROOT
 from walkers.training import checkpoints
+
+pytestmark = pytest.mark.faults  # `make test-faults`, beside `make test` in CI
 
 #: A run far longer than any test waits: it is stopped by a signal after its first evaluation.
 LONG_RUN = [

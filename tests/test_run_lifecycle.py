@@ -5,8 +5,12 @@ from __future__ import annotations
 
 import shutil
 
+import pytest
+
 from tests.conftest import TINY, all_runs, compose_cfg, new_store, run_cli
 from walkers.train import train
+
+pytestmark = pytest.mark.faults  # `make test-faults`, beside `make test` in CI
 
 
 def test_a_resume_that_fails_to_reopen_its_run_leaves_it_continuable(tmp_path):

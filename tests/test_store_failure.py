@@ -10,8 +10,12 @@ import sys
 import time
 import urllib.request
 
+import pytest
+
 from tests.conftest import spawn_cli
 from walkers.training import checkpoints
+
+pytestmark = pytest.mark.faults  # `make test-faults`, beside `make test` in CI
 
 
 def _free_port() -> int:

@@ -134,7 +134,7 @@ def test_sweep_files_compose_with_a_pruner_and_a_search_space(sweep):
     with initialize_config_dir(config_dir=CONF_DIR):
         cfg = compose("train", overrides=[f"sweeps={sweep}", *offline], return_hydra_config=True)
     validate(cfg)
-    assert cfg.hydra.sweeper._target_ == "walkers.tuning.sweeper.PruningOptunaSweeper"
+    assert cfg.hydra.sweeper._target_ == "walkers.plugins.PruningOptunaSweeper"
     assert cfg.hydra.sweeper.study_name == sweep and cfg.hydra.sweeper.params
     assert make_pruner(cfg.pruner) is not None
     absent = object()

@@ -13,11 +13,12 @@ from omegaconf import DictConfig
 
 from walkers import CONF_DIR
 from walkers.cli import exit_on_bad_overrides, or_exit
-from walkers.training.collection import collect
 
 
 @hydra.main(config_path=str(CONF_DIR), config_name="collect")
 def main(cfg: DictConfig) -> None:
+    from walkers.training.collection import collect  # torch, MLflow: after the overrides' check
+
     stats = or_exit(collect, cfg)
     print(
         f"dataset {stats['dataset']}: {stats['episodes']} episodes, {stats['steps']} steps, "

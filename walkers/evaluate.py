@@ -13,11 +13,12 @@ from omegaconf import DictConfig
 
 from walkers import CONF_DIR
 from walkers.cli import exit_on_bad_overrides, or_exit
-from walkers.training.policy_replay import evaluate
 
 
 @hydra.main(config_path=str(CONF_DIR), config_name="evaluate")
 def main(cfg: DictConfig) -> None:
+    from walkers.training.policy_replay import evaluate  # torch, MLflow: after the overrides' check
+
     result = or_exit(evaluate, cfg)
     where = (
         "held-out start states (never evaluated on by the run)"

@@ -23,10 +23,18 @@ from omegaconf import DictConfig
 from walkers import CONF_DIR
 from walkers.cli import exit_on_bad_overrides, renamed_overrides, stop_cleanly_on_signals
 from walkers.errors import CheckpointError, ConfigError
-from walkers.training.bookkeeping import TrainingDiverged
-from walkers.training.session import train
 
-__all__ = ["main", "train"]
+__all__ = ["main"]  # and `train`, on first use (below)
+
+
+def __getattr__(name: str):
+    """``train`` (the session) is imported on first use: torch and MLflow take seconds to
+    import, and a typo on the command line is refused before either is needed."""
+    if name == "train":
+        from walkers.training.session import train
+
+        return train
+    raise AttributeError(f"module 'walkers.train' has no attribute {name!r}")
 
 
 def parallel_jobs() -> int:
@@ -52,6 +60,9 @@ def fail(message: str, exit_code: int):
 
 @hydra.main(config_path=str(CONF_DIR), config_name="train", execution_whitelist=["walkers.*"])
 def main(cfg: DictConfig) -> float:
+    from walkers.training.bookkeeping import TrainingDiverged
+    from walkers.training.session import train
+
     stop_cleanly_on_signals()  # in a worker process too: SIGTERM ends the run like Ctrl-C
     hydra_cfg = HydraConfig.get()
     study = hydra_cfg.runtime.choices.get("ab")

@@ -49,7 +49,9 @@ class JobsFailed(RuntimeError):
     """Jobs of a round raised (on a cluster: a job's error comes back as its result)."""
 
 
-class ABStudySweeper(Sweeper):
+class StudySweeper(Sweeper):
+    """Hydra registers it as :class:`walkers.plugins.ABStudySweeper`, which builds it."""
+
     def __init__(self, **declared: Any) -> None:
         self.declared = declared
 

@@ -91,7 +91,9 @@ log = logging.getLogger("walkers")
 SAMPLER_TARGETS = ("hydra_plugins.hydra_optuna_sweeper.*", "optuna.samplers.*")
 
 
-class PruningOptunaSweeper(OptunaSweeperImpl):
+class OptunaStudySweeper(OptunaSweeperImpl):
+    """Hydra registers it as :class:`walkers.plugins.PruningOptunaSweeper`, which builds it."""
+
     def __init__(
         self,
         sampler: Any,

@@ -16,6 +16,7 @@ from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.errors import ConfigCompositionException, MissingConfigException, OverrideParseException
 
 from walkers import CONF_DIR as _CONF_DIR
+from walkers import interrupts
 from walkers.errors import CheckpointError, ConfigError
 
 CONF_DIR = str(_CONF_DIR)
@@ -156,7 +157,8 @@ def group_by_as_list(args: list[str]) -> list[str]:
 
 class _Stopping:
     """SIGINT and SIGTERM: the first one stops the run (a KeyboardInterrupt wherever the process
-    is, so every run ends KILLED after a last checkpoint); any further one while it ends is
+    is but inside a store write, :mod:`walkers.interrupts`, so every run ends KILLED after a last
+    checkpoint); any further one while it ends is
     acknowledged in one line and otherwise ignored. ``timeout``, ``scancel`` or ``kill -TERM
     -<pgid>`` signal make and python both (make then forwards another), a supervisor may insist,
     a user may press Ctrl-C twice: none of these may break the checkpoint being written or leave
@@ -169,6 +171,9 @@ class _Stopping:
     def __call__(self, signum, frame) -> None:
         if not self.stopping:
             self.stopping = True
+            if interrupts.shielding():  # inside a store write: raised when it is over
+                interrupts.note(f"signal {signum}")
+                return
             raise KeyboardInterrupt(f"signal {signum}")
         if not self.told:  # os.write: print() may be in progress in the interrupted frame
             self.told = True

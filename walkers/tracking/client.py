@@ -20,6 +20,7 @@ from mlflow.exceptions import MlflowException
 from mlflow.tracking import MlflowClient
 
 from walkers.errors import CheckpointError, ConfigError
+from walkers.interrupts import shielded
 
 log = logging.getLogger("walkers.tracking")
 
@@ -56,10 +57,12 @@ def _artifact_location(uri: str) -> str | None:
 
 
 def _with_retries(fn, *args, attempts: int = 8, **kwargs):
-    """Call ``fn``, retrying sqlite's transient "database is locked" under parallel jobs."""
+    """Call ``fn``, retrying sqlite's transient "database is locked" under parallel jobs; a stop
+    signal waits for the end of an attempt (:func:`walkers.interrupts.shielded`)."""
     for attempt in range(attempts):
         try:
-            return fn(*args, **kwargs)
+            with shielded():
+                return fn(*args, **kwargs)
         except MlflowException as e:
             if "locked" not in str(e) or attempt == attempts - 1:
                 raise

@@ -23,6 +23,7 @@ from pathlib import Path
 from mlflow.entities import Metric, Param, RunTag
 from mlflow.tracking import MlflowClient
 
+from walkers.interrupts import shielded
 from walkers.tracking.client import (
     _with_retries,
     get_or_create_experiment,
@@ -211,14 +212,15 @@ class Tracker:
             # leave metrics beyond the mark, logged a second time by the resumed run
             self._sent_through = max(self._sent_through, *(m.step for m in chunk))
             mark = RunTag(LOGGED_THROUGH_TAG, str(self._sent_through))
-            try:
-                _with_retries(self.client.log_batch, self.run_id, metrics=chunk, tags=[mark])
-            except Exception as e:
-                log.warning(
-                    "MLflow unreachable, %d metrics kept for later: %s", len(self._pending), e
-                )
-                return False
-            del self._pending[: len(chunk)]
+            with shielded():  # a stop signal after the write leaves it counted as sent
+                try:
+                    _with_retries(self.client.log_batch, self.run_id, metrics=chunk, tags=[mark])
+                except Exception as e:
+                    log.warning(
+                        "MLflow unreachable, %d metrics kept for later: %s", len(self._pending), e
+                    )
+                    return False
+                del self._pending[: len(chunk)]
         return True
 
     def log_artifact(self, path, artifact_path: str | None = None) -> bool:

@@ -1,0 +1,65 @@
+"""A stop signal that arrives while a run writes to its store waits for the write's end.
+
+Real signals to this process through walkers' own handler, a real sqlite MLflow store.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+
+import pytest
+from mlflow.tracking import MlflowClient
+
+from walkers import cli, interrupts
+from walkers.tracking.tracker import Tracker
+
+
+class _SignalledInsideWrites(MlflowClient):
+    """A store client that gets SIGTERM at the start of every metrics write."""
+
+    def log_batch(self, run_id, metrics=(), params=(), tags=(), **kwargs):
+        if metrics:
+            os.kill(os.getpid(), signal.SIGTERM)  # its handler runs inside the write below
+        return super().log_batch(run_id, metrics=metrics, params=params, tags=tags, **kwargs)
+
+
+@pytest.fixture
+def stop_handler():
+    """walkers' SIGINT/SIGTERM handler in this process, put back as it was afterwards."""
+    before = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    cli.stop_cleanly_on_signals()
+    yield
+    for sig, handler in before.items():
+        signal.signal(sig, handler)
+    cli._STOPPING.stopping = cli._STOPPING.told = False
+
+
+def test_a_signal_inside_a_metrics_write_is_raised_after_it(store, tmp_path, stop_handler):
+    client = _SignalledInsideWrites(store["uri"])
+    tracker = Tracker.start(client, "shielded", "run", {}, tmp_path / "spool")
+    tracker.log_metrics({"eval/return_mean": 1.5, "loss/critic": 0.25}, step=600)
+
+    with pytest.raises(KeyboardInterrupt, match=f"signal {signal.SIGTERM}"):
+        tracker.flush()
+
+    assert not interrupts.shielding()
+    assert tracker._pending == []  # written, so not sent a second time when the run ends
+    other = MlflowClient(store["uri"])  # the store is not left locked: another writer gets in
+    other.set_tag(tracker.run_id, "after", "the signal")
+    run = other.get_run(tracker.run_id)
+    assert run.data.metrics == {"eval/return_mean": 1.5, "loss/critic": 0.25}
+    assert run.data.tags["after"] == "the signal"
+    tracker.end("KILLED")
+    assert other.get_run(tracker.run_id).info.status == "KILLED"
+
+
+def test_shielded_blocks_nest_and_raise_once_at_the_outermost(stop_handler):
+    with pytest.raises(KeyboardInterrupt):
+        with interrupts.shielded():
+            with interrupts.shielded():
+                os.kill(os.getpid(), signal.SIGTERM)
+                assert interrupts.shielding()
+            reached_after_the_inner_block = True
+    assert reached_after_the_inner_block
+    assert not interrupts.shielding()

@@ -1,0 +1,50 @@
+"""Places a stop signal may not land in: a write to the tracking store.
+
+walkers turns SIGINT and SIGTERM into a KeyboardInterrupt wherever the main thread is
+(:mod:`walkers.cli`), so a run ends KILLED after a last checkpoint. Raised inside an MLflow
+write to a sqlite store, that exception can leave the store's write lock held by a connection
+SQLAlchemy abandons: every later write of the run, its last metrics and its KILLED status
+included, then waits out sqlite's busy timeout and the run's store patience (seen once under load
+in ``make test``: a SIGTERM'd run still ending 3 minutes later). Inside :func:`shielded` the
+signal is only noted; it is raised as soon as the write is over.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+_depth = 0  # shielded blocks open in the main thread (signals are handled there only)
+_noted: str | None = None  # the signal that arrived inside one, raised when the last one ends
+
+
+def shielding() -> bool:
+    """True inside a :func:`shielded` block of the main thread."""
+    return _depth > 0
+
+
+def note(reason: str) -> None:
+    """Keep a stop that arrived inside a shielded block, for the block's end to raise."""
+    global _noted
+    _noted = _noted or reason
+
+
+@contextmanager
+def shielded() -> Iterator[None]:
+    """Run the block to its end whatever stop signal arrives; then raise it (KeyboardInterrupt).
+
+    In a thread other than the main one this does nothing: signals never interrupt those.
+    """
+    global _depth, _noted
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    _depth += 1
+    try:
+        yield
+    finally:
+        _depth -= 1
+        if _depth == 0 and _noted is not None:
+            reason, _noted = _noted, None
+            raise KeyboardInterrupt(reason)

@@ -157,9 +157,9 @@ def group_by_as_list(args: list[str]) -> list[str]:
 
 class _Stopping:
     """SIGINT and SIGTERM: the first one stops the run (a KeyboardInterrupt wherever the process
-    is but inside a store write, :mod:`walkers.interrupts`, so every run ends KILLED after a last
-    checkpoint); any further one while it ends is
-    acknowledged in one line and otherwise ignored. ``timeout``, ``scancel`` or ``kill -TERM
+    is, once any store write under way is over: :mod:`walkers.interrupts`; so every run ends
+    KILLED after a last checkpoint); any further one while it ends is acknowledged in one line
+    and otherwise ignored. ``timeout``, ``scancel`` or ``kill -TERM
     -<pgid>`` signal make and python both (make then forwards another), a supervisor may insist,
     a user may press Ctrl-C twice: none of these may break the checkpoint being written or leave
     the run RUNNING. ``kill -9`` still ends the process at once (``resume=`` continues from the

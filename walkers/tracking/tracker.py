@@ -212,7 +212,9 @@ class Tracker:
             # leave metrics beyond the mark, logged a second time by the resumed run
             self._sent_through = max(self._sent_through, *(m.step for m in chunk))
             mark = RunTag(LOGGED_THROUGH_TAG, str(self._sent_through))
-            with shielded():  # a stop signal after the write leaves it counted as sent
+            # a stop signal waits for the write and its bookkeeping (the retries included,
+            # which the run's ending would wait for anyway): what was sent is never resent
+            with shielded():
                 try:
                     _with_retries(self.client.log_batch, self.run_id, metrics=chunk, tags=[mark])
                 except Exception as e:

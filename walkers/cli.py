@@ -157,7 +157,7 @@ def group_by_as_list(args: list[str]) -> list[str]:
 
 class _Stopping:
     """SIGINT and SIGTERM: the first one stops the run (a KeyboardInterrupt wherever the process
-    is, once any store write under way is over: :mod:`walkers.interrupts`; so every run ends
+    is, once any store call under way is over: :mod:`walkers.interrupts`; so every run ends
     KILLED after a last checkpoint); any further one while it ends is acknowledged in one line
     and otherwise ignored. ``timeout``, ``scancel`` or ``kill -TERM
     -<pgid>`` signal make and python both (make then forwards another), a supervisor may insist,
@@ -171,7 +171,7 @@ class _Stopping:
     def __call__(self, signum, frame) -> None:
         if not self.stopping:
             self.stopping = True
-            if interrupts.shielding():  # inside a store write: raised when it is over
+            if interrupts.shielding():  # inside a store call: raised when it is over
                 interrupts.note(f"signal {signum}")
                 return
             raise KeyboardInterrupt(f"signal {signum}")

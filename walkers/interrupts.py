@@ -1,12 +1,13 @@
-"""Places a stop signal may not land in: a write to the tracking store.
+"""Places a stop signal may not land in: a call to the tracking store, a read or a write.
 
 walkers turns SIGINT and SIGTERM into a KeyboardInterrupt wherever the main thread is
-(:mod:`walkers.cli`), so a run ends KILLED after a last checkpoint. Raised inside an MLflow
-write to a sqlite store, that exception can leave the store's write lock held by a connection
-SQLAlchemy abandons: every later write of the run, its last metrics and its KILLED status
-included, then waits out sqlite's busy timeout and the run's store patience (seen once under load
-in ``make test``: a SIGTERM'd run still ending 3 minutes later). Inside :func:`shielded` the
-signal is only noted; it is raised as soon as the write is over.
+(:mod:`walkers.cli`), so a run ends KILLED after a last checkpoint. Raised inside an MLflow call
+to a sqlite store, a read as much as a write, that exception can leave the store's lock held by a
+connection SQLAlchemy abandons: every later write, the run's last metrics and its KILLED status
+included, then waits out sqlite's busy timeout and the run's store patience (seen under load: a
+SIGTERM'd run still ending 3 minutes later; a study's KILLED writes failing "database is
+locked"). Inside :func:`shielded` the signal is only noted; it is raised as soon as the call is
+over. :class:`walkers.tracking.client.StoreClient` shields every call it makes.
 """
 
 from __future__ import annotations

@@ -8,6 +8,7 @@ called, never at import.
 
 from __future__ import annotations
 
+import functools
 import logging
 import os
 import time
@@ -56,6 +57,31 @@ def _artifact_location(uri: str) -> str | None:
     return None
 
 
+class StoreClient(MlflowClient):
+    """An :class:`MlflowClient` whose public calls, reads included, each run to their end
+    whatever stop signal arrives; the signal is raised as soon as the call is over
+    (:func:`walkers.interrupts.shielded`).
+
+    A KeyboardInterrupt raised inside SQLAlchemy, in a read as much as in a write, can leave a
+    connection holding the database's lock; every later write of the process, and of every other
+    process on the same sqlite file, then waits out the busy timeout (seen in CI: a study's
+    SIGTERM landing in a job's ``get_experiment_by_name``, and the study's own KILLED writes
+    failing with "database is locked").
+    """
+
+    def __getattribute__(self, name: str):
+        attribute = super().__getattribute__(name)
+        if name.startswith("_") or not callable(attribute):
+            return attribute
+
+        @functools.wraps(attribute)
+        def to_its_end(*args, **kwargs):
+            with shielded():
+                return attribute(*args, **kwargs)
+
+        return to_its_end
+
+
 def _with_retries(fn, *args, attempts: int = 8, **kwargs):
     """Call ``fn``, retrying sqlite's transient "database is locked" under parallel jobs; a stop
     signal waits for the end of an attempt (:func:`walkers.interrupts.shielded`)."""
@@ -88,8 +114,9 @@ def get_or_create_experiment(client: MlflowClient, name: str) -> str:
         return experiment.experiment_id
 
 
-def connect(uri: str) -> MlflowClient:
-    """A client for ``uri``; an unreachable or unusable store is a :class:`ConfigError`.
+def connect(uri: str) -> StoreClient:
+    """A :class:`StoreClient` for ``uri``; an unreachable or unusable store is a
+    :class:`ConfigError`.
 
     A server is probed once, quickly, first: MLflow's own client retries a refused connection
     with backoff for minutes before it gives up.
@@ -106,7 +133,7 @@ def connect(uri: str) -> MlflowClient:
     try:
         if uri.startswith(("http://", "https://")):
             urllib.request.urlopen(f"{uri.rstrip('/')}/health", timeout=10).close()
-        client = MlflowClient(tracking_uri=uri)
+        client = StoreClient(tracking_uri=uri)
         _with_retries(client.search_experiments, max_results=1)
     except Exception as e:
         raise ConfigError(

@@ -1,4 +1,4 @@
-"""A stop signal that arrives while a run writes to its store waits for the write's end.
+"""A stop signal that arrives while a run reads or writes its store waits for the call's end.
 
 Real signals to this process through walkers' own handler, a real sqlite MLflow store.
 """
@@ -9,9 +9,10 @@ import os
 import signal
 
 import pytest
+import sqlalchemy
 from mlflow.tracking import MlflowClient
 
-from walkers import cli, interrupts
+from walkers import cli, interrupts, tracking
 from walkers.tracking.tracker import Tracker
 
 
@@ -63,3 +64,31 @@ def test_shielded_blocks_nest_and_raise_once_at_the_outermost(stop_handler):
             reached_after_the_inner_block = True
     assert reached_after_the_inner_block
     assert not interrupts.shielding()
+
+
+def test_a_signal_inside_a_read_is_raised_after_it_and_leaves_the_store_unlocked(
+    store, stop_handler
+):
+    client = tracking.connect(store["uri"])
+    engine = client._tracking_client.store.engine
+    signalled = []
+
+    def signal_inside_the_first_select(conn, cursor, statement, *args):
+        if statement.lstrip().upper().startswith("SELECT") and not signalled:
+            signalled.append(statement)
+            os.kill(os.getpid(), signal.SIGTERM)  # its handler runs inside SQLAlchemy's read
+
+    sqlalchemy.event.listen(engine, "before_cursor_execute", signal_inside_the_first_select)
+    try:
+        with pytest.raises(KeyboardInterrupt, match=f"signal {signal.SIGTERM}") as stopped:
+            client.get_experiment_by_name("Default")
+    finally:
+        sqlalchemy.event.remove(engine, "before_cursor_execute", signal_inside_the_first_select)
+
+    assert signalled
+    assert stopped.traceback[-1].path.name == "interrupts.py"  # raised after the read, not in it
+    assert not interrupts.shielding()
+    other = MlflowClient(store["uri"])  # the store is not left locked: another writer gets in
+    run = other.create_run(client.get_experiment_by_name("Default").experiment_id)
+    other.set_terminated(run.info.run_id, "KILLED")
+    assert client.get_run(run.info.run_id).info.status == "KILLED"

@@ -25,6 +25,19 @@ class _SignalledInsideWrites(MlflowClient):
         return super().log_batch(run_id, metrics=metrics, params=params, tags=tags, **kwargs)
 
 
+class _SignalledWhileOpeningRuns(MlflowClient):
+    """A store client that gets SIGTERM while it creates a run or sets one RUNNING again."""
+
+    def create_run(self, *args, **kwargs):
+        os.kill(os.getpid(), signal.SIGTERM)
+        return super().create_run(*args, **kwargs)
+
+    def update_run(self, run_id, status=None, **kwargs):
+        if status == "RUNNING":
+            os.kill(os.getpid(), signal.SIGTERM)
+        return super().update_run(run_id, status=status, **kwargs)
+
+
 @pytest.fixture
 def stop_handler():
     """walkers' SIGINT/SIGTERM handler in this process, put back as it was afterwards."""
@@ -92,3 +105,17 @@ def test_a_signal_inside_a_read_is_raised_after_it_and_leaves_the_store_unlocked
     run = other.create_run(client.get_experiment_by_name("Default").experiment_id)
     other.set_terminated(run.info.run_id, "KILLED")
     assert client.get_run(run.info.run_id).info.status == "KILLED"
+
+
+def test_a_signal_while_a_run_is_opened_ends_that_run_killed(store, tmp_path, stop_handler):
+    client = _SignalledWhileOpeningRuns(store["uri"])
+    with pytest.raises(KeyboardInterrupt, match=f"signal {signal.SIGTERM}"):
+        Tracker.start(client, "opened", "run", {}, tmp_path / "spool")
+    experiment = client.get_experiment_by_name("opened")
+    (run,) = MlflowClient(store["uri"]).search_runs([experiment.experiment_id])
+    assert run.info.status == "KILLED"  # not RUNNING with nothing left to end it
+
+    cli._STOPPING.stopping = False  # a later process continues it, and is stopped in turn
+    with pytest.raises(KeyboardInterrupt, match=f"signal {signal.SIGTERM}"):
+        Tracker.reopen(client, run.info.run_id, tmp_path / "spool", resumed_training=True)
+    assert MlflowClient(store["uri"]).get_run(run.info.run_id).info.status == "KILLED"

@@ -16,7 +16,7 @@ import json
 import logging
 import os
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -60,6 +60,21 @@ def end_running(client: MlflowClient, experiment: str, query: str, status: str, 
             tracker.end(status)
             ended.append(run.info.run_id)
     return ended
+
+
+@contextmanager
+def _killed_if_stopped() -> Iterator[list[Tracker]]:
+    """Open a run (create it, or set it RUNNING again) and append its :class:`Tracker` to the
+    list this yields. A stop signal meanwhile waits for the block's end, and the run opened so
+    far ends KILLED then: otherwise it would stay RUNNING with nothing left to end it."""
+    made: list[Tracker] = []
+    try:
+        with shielded():
+            yield made
+    except KeyboardInterrupt:
+        for tracker in made:
+            tracker.end(KILLED)
+        raise
 
 
 @contextmanager
@@ -122,22 +137,26 @@ class Tracker:
     @classmethod
     def start(cls, client, experiment: str, run_name: str, tags: dict, spool_dir) -> Tracker:
         experiment_id = get_or_create_experiment(client, experiment)
-        run = _with_retries(client.create_run, experiment_id, run_name=run_name, tags=tags)
-        return cls(client, run.info.run_id, experiment_id, spool_dir)
+        with _killed_if_stopped() as made:
+            run = _with_retries(client.create_run, experiment_id, run_name=run_name, tags=tags)
+            made.append(cls(client, run.info.run_id, experiment_id, spool_dir))
+        return made[0]
 
     @classmethod
     def reopen(cls, client, run_id: str, spool_dir, resumed_training: bool = False) -> Tracker:
         """The run ``run_id``, RUNNING again. ``resumed_training``: a training run continued
         from its last checkpoint, which logs nothing at or before its logged-through mark."""
         run = client.get_run(run_id)
-        _with_retries(client.update_run, run_id, status="RUNNING")
         mark = run.data.tags.get(LOGGED_THROUGH_TAG) if resumed_training else None
-        tracker = cls(client, run_id, run.info.experiment_id, spool_dir, mark and int(mark))
-        if resumed_training:  # per metric: a step split over two requests, or final/* never sent
-            tracker._logged = {
-                key: max(m.step for m in client.get_metric_history(run_id, key))
-                for key in run.data.metrics
-            }
+        with _killed_if_stopped() as made:
+            _with_retries(client.update_run, run_id, status="RUNNING")
+            tracker = cls(client, run_id, run.info.experiment_id, spool_dir, mark and int(mark))
+            made.append(tracker)
+            if resumed_training:  # per metric: a step split over two requests, or final/* unsent
+                tracker._logged = {
+                    key: max(m.step for m in client.get_metric_history(run_id, key))
+                    for key in run.data.metrics
+                }
         return tracker
 
     def start_system_metrics(self, every_s: float) -> None:

@@ -83,12 +83,11 @@ class StoreClient(MlflowClient):
 
 
 def _with_retries(fn, *args, attempts: int = 8, **kwargs):
-    """Call ``fn``, retrying sqlite's transient "database is locked" under parallel jobs; a stop
-    signal waits for the end of an attempt (:func:`walkers.interrupts.shielded`)."""
+    """Call ``fn``, retrying sqlite's transient "database is locked" under parallel jobs (a
+    :class:`StoreClient`'s call already holds a stop signal until it returns)."""
     for attempt in range(attempts):
         try:
-            with shielded():
-                return fn(*args, **kwargs)
+            return fn(*args, **kwargs)
         except MlflowException as e:
             if "locked" not in str(e) or attempt == attempts - 1:
                 raise

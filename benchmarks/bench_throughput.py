@@ -346,7 +346,7 @@ def main():
             f"SAC, {where}, {args.reps} rounds x {CROSSQ_ROUND} steps"
         )
         print_table(crossq, "env steps/s", baseline="walkers SAC")
-    if sps:
+    if set(sps) - set(crossq):  # not only the SAC rows the CrossQ table already shows
         print(
             f"\n{ENV_ID}, learning phase, {HIDDEN}-{HIDDEN}, batch {BATCH}, 1 gradient step per "
             f"env step, {where}, {args.reps} rounds x {args.steps} steps"

@@ -293,6 +293,16 @@ def test_report_puts_dt_beside_td3(offline, tmp_path):
     assert dt_summary["behaviour_score"] == pytest.approx(100)  # the behaviour is the reference
     assert f"dt (offline, {EXPERT}): normalized score" in report
     assert "the data's behaviour policy: return" in report
+    # each target return the DT was asked for, highest first, with the seed's final return there
+    per_target = dt_summary["per_target"]
+    assert list(per_target) == [f"{HIGH:g}", f"{LOW:g}"]
+    for target in (HIGH, LOW):
+        final = _last(offline, _run(offline, "dt"), f"eval/target_{target}/return_mean")
+        assert per_target[f"{target:g}"]["iqm"] == pytest.approx(final)  # one seed: its own
+        score = per_target[f"{target:g}"]["normalized_iqm"][0]
+        assert score == pytest.approx(100 * (final - low) / (high - low))
+    assert f"dt (offline, {EXPERT}) by target return" in report
+    assert summary["algos"]["td3"]["per_target"] == {}  # an online arm has none
     assert (out / "learning_curves.png").stat().st_size > 0
 
 

@@ -97,6 +97,7 @@ def compare_groups(
                 auc=np.array([r.summary["final/auc"] for r in runs]),
                 steps_to_threshold=np.array([r.summary["final/steps_to_threshold"] for r in runs]),
                 arm=(arms or {}).get(name),
+                per_target=_per_target(runs, boot),
             )
         )
     by_name = {r.algo: r for r in results}
@@ -139,6 +140,16 @@ def compare_groups(
 
 
 # --- the command ----------------------------------------------------------------------------
+
+
+def _per_target(runs: list, boot: dict) -> dict[str, tuple[float, float, float]]:
+    """The IQM of the final returns and its CI at each target return that every seed of an arm
+    was evaluated at (a DT's), highest target first; empty for other arms."""
+    targets = set.intersection(*(set(r.final_per_target) for r in runs)) if runs else set()
+    return {
+        target: stats.iqm_ci([[r.final_per_target[target] for r in runs]], **boot)
+        for target in sorted(targets, key=float, reverse=True)
+    }
 
 
 def _check(cfg: DictConfig) -> None:

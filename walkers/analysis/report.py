@@ -57,6 +57,23 @@ def _normalized_lines(r) -> list[str]:
     return ["", line + "."]
 
 
+def _per_target_lines(r) -> list[str]:
+    """A return-conditioned arm's (DT's) final return at each target it was asked for."""
+    if len(r.per_target) < 2:  # one target: the headline above
+        return []
+    cells = []
+    for target, (point, low, high) in r.per_target.items():
+        score = r.normalized(point)
+        normalized = "" if score is None else f", normalized {_num(score)}"
+        cells.append(f"asked for {_num(float(target))}: {_interval(point, low, high)}{normalized}")
+    return [
+        "",
+        f"{r.label} by target return (the IQM of the final returns and its CI): "
+        + "; ".join(cells)
+        + ".",
+    ]
+
+
 def _num(x: float) -> str:
     if x is None or not math.isfinite(x):
         return "n/a"
@@ -280,7 +297,7 @@ def markdown(c: Comparison, source: str) -> str:
             "`python -m walkers.plan` plans a study from these runs.",
         ]
     for r in c.algos:
-        out += _normalized_lines(r)
+        out += _normalized_lines(r) + _per_target_lines(r)
     if len(c.grids) > 1:
         out += [
             "",

@@ -45,6 +45,8 @@ class SeedRun:
     references: tuple[float, float, str] | None = None
     behaviour_return: float | None = None  # offline runs: the mean return in the dataset
     cpu_hours: float | None = None  # the run's process CPU time (runs logged before: None)
+    #: return-conditioned runs (DT): the final return at each target return, by target
+    final_per_target: dict[str, float] = field(default_factory=dict)
 
 
 @dataclass
@@ -60,6 +62,9 @@ class AlgoResult:
     auc: np.ndarray
     steps_to_threshold: np.ndarray  # inf where a seed never reached it
     arm: Arm | None = None
+    #: return-conditioned arms (DT): the IQM of the final returns and its CI at each target
+    #: return every seed was evaluated at, highest target first
+    per_target: dict[str, tuple[float, float, float]] = field(default_factory=dict)
 
     @property
     def algorithm(self) -> str:
@@ -136,6 +141,15 @@ class AlgoResult:
             "steps_to_threshold_median": _finite_or_none(np.median(self.steps_to_threshold)),
             "cpu_hours": hours,
             "cpu_hours_runs": counted,
+            "per_target": {
+                target: {
+                    "iqm": point,
+                    "iqm_low": _finite_or_none(low),
+                    "iqm_high": _finite_or_none(high),
+                    "normalized_iqm": [self.normalized(v) for v in (point, low, high)],
+                }
+                for target, (point, low, high) in self.per_target.items()
+            },
         }
 
 

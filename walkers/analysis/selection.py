@@ -4,6 +4,7 @@ env's published reference figures for the algorithms compared."""
 
 from __future__ import annotations
 
+import re
 from collections import Counter
 
 import numpy as np
@@ -14,6 +15,7 @@ from walkers.analysis.results import AXIS_NAMES, SeedRun
 from walkers.tracking import ENV_STEPS, GRADIENT_STEPS, KIND_TAG
 
 CURVE_METRIC = "eval/return_mean"
+TARGET_METRIC = re.compile(r"eval/target_(.+)/return_mean")  # a DT's return at one target
 
 
 def x_axis(run) -> str:
@@ -123,8 +125,19 @@ def load_seed_runs(client, runs: list, threshold: float) -> dict[str, SeedRun]:
             references=_references(run.data.params),
             behaviour_return=_float(run.data.params.get("dataset_stats.behaviour_return")),
             cpu_hours=run.data.metrics.get("final/cpu_hours"),
+            final_per_target=final_per_target(run.data.metrics),
         )
     return loaded
+
+
+def final_per_target(metrics: dict[str, float]) -> dict[str, float]:
+    """A return-conditioned run's last evaluation at each of its target returns (the run's
+    latest metric values are its last evaluation's)."""
+    return {
+        match.group(1): value
+        for key, value in metrics.items()
+        if (match := TARGET_METRIC.fullmatch(key))
+    }
 
 
 def _float(value: str | None) -> float | None:

@@ -139,9 +139,6 @@ def compare_groups(
     )
 
 
-# --- the command ----------------------------------------------------------------------------
-
-
 def _per_target(runs: list, boot: dict) -> dict[str, tuple[float, float, float]]:
     """The IQM of the final returns and its CI at each target return that every seed of an arm
     was evaluated at (a DT's), highest target first; empty for other arms."""
@@ -150,6 +147,9 @@ def _per_target(runs: list, boot: dict) -> dict[str, tuple[float, float, float]]
         target: stats.iqm_ci([[r.final_per_target[target] for r in runs]], **boot)
         for target in sorted(targets, key=float, reverse=True)
     }
+
+
+# --- the command ----------------------------------------------------------------------------
 
 
 def _check(cfg: DictConfig) -> None:

@@ -282,3 +282,16 @@ def test_td3bc_bad_input_is_one_line(chain):
             train(compose_cfg([*TD3BC_RUN, "env=hopper", *chain["overrides"]]))
         with pytest.raises(ConfigError, match=r"^algo.batch_size=1000 is more than the 800"):
             train(compose_cfg([*TD3BC_RUN, "algo.batch_size=1000", *chain["overrides"]]))
+        runs_before = len(all_runs(chain["client"]))
+        unknown_family = [f for f in TD3BC_RUN if not f.startswith("dataset=")]
+        with pytest.raises(
+            ConfigError,
+            match=r"^dataset='walkers/pendulum/mediocre' is not a local Minari dataset in .*; "
+            rf"local datasets: {DATASET} \(make one with `python -m walkers.collect`",
+        ):
+            train(
+                compose_cfg(
+                    [*unknown_family, "dataset=walkers/pendulum/mediocre", *chain["overrides"]]
+                )
+            )
+        assert len(all_runs(chain["client"])) == runs_before  # refused before any run was made

@@ -5,9 +5,10 @@
 The agent at its declared defaults (``conf/algo/dt.yaml``: context 20, embedding 128, 3 blocks,
 1 head, batch 64, dropout 0.1, AdamW), sampling from a synthetic dataset of Walker2d-v5 shapes
 (17-d observations, 6-d actions, 20 episodes of 1,000 steps): what ``algo=dt env=walker2d``
-runs per gradient step, the sampling of the batch included. The devices take turns, ``--steps``
-gradient steps a round, and the table gives the median ms per step and the ratio to the first
-device. A benchmark, not a test: nothing here asserts on time.
+runs per gradient step, the sampling of the batch included; beside it on each device the same
+agent with ``algo.precision=bf16`` (bfloat16 autocast) and one with torch's encoder for its blocks.
+The contenders take turns, ``--steps`` gradient steps a round, and the table gives the median ms
+per step and the ratio to the first. A benchmark, not a test: nothing here asserts on time.
 """
 
 from __future__ import annotations
@@ -83,14 +84,20 @@ def main():
     data = walker2d_shaped_data()
     hyperparameters = defaults_for(DecisionTransformer, max_episode_steps=STEPS)
 
-    def agent(device: str) -> DecisionTransformer:
+    def agent(device: str, precision: str = "fp32") -> DecisionTransformer:
         return DecisionTransformer(
-            OBS, [-1.0] * ACT, [1.0] * ACT, dataset=data, device=device, **hyperparameters
+            OBS,
+            [-1.0] * ACT,
+            [1.0] * ACT,
+            dataset=data,
+            device=device,
+            **hyperparameters | {"precision": precision},
         )
 
     agents = {}
     for device in args.devices.split(","):
         agents[f"walkers DT on {device}"] = agent(device)
+        agents[f"walkers DT, precision=bf16, on {device}"] = agent(device, "bf16")
         agents[f"torch TransformerEncoder on {device}"] = with_torch_encoder(
             agent(device), hyperparameters
         )

@@ -9,12 +9,15 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
 from mlflow.tracking import MlflowClient
 
 from walkers import PROJECT_ROOT
+from walkers.data.datasets import OfflineData
+from walkers.data.episodes import Episode
 
 # `make test` runs one worker per core: each (and every command it spawns) gets one thread, as
 # two-thread torch pools on two busy cores slow each other down several times over. A file run on
@@ -169,3 +172,20 @@ def one_line_error(result: subprocess.CompletedProcess) -> str:
 
 def metric_steps(client: MlflowClient, run_id: str, key: str) -> list[int]:
     return [m.step for m in client.get_metric_history(run_id, key)]
+
+
+def tiny_offline_data() -> OfflineData:
+    """Three 12-step episodes of Pendulum shapes (3-d states, 1-d actions in [-2, 2]), random."""
+    rng = np.random.default_rng(0)
+    steps = 12
+    episodes = [
+        Episode(
+            rng.normal(size=(steps + 1, 3)).astype(np.float32),
+            rng.uniform(-2, 2, size=(steps, 1)).astype(np.float32),
+            rng.normal(size=steps).astype(np.float32),
+            np.zeros(steps, bool),
+            np.arange(steps) == steps - 1,
+        )
+        for _ in range(3)
+    ]
+    return OfflineData("tiny", "Pendulum-v1", episodes, None, None)

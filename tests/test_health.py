@@ -11,15 +11,13 @@ import logging
 import numpy as np
 import torch
 
-from tests.conftest import TINY, compose_cfg
+from tests.conftest import TINY, compose_cfg, tiny_offline_data
 from walkers.agents.base import Transition
 from walkers.agents.dt import DecisionTransformer
 from walkers.agents.factory import build_agent, defaults_for
 from walkers.agents.health import SKIPPED, SKIPPED_IN_A_ROW, guarded_agent_step, guarded_step
 from walkers.agents.ppo import PPO
 from walkers.agents.reinforce import Reinforce
-from walkers.data.datasets import OfflineData
-from walkers.data.episodes import Episode
 from walkers.data.replay import ReplayBuffer
 from walkers.seeding import restore_torch_rng, torch_rng_state
 from walkers.train import train
@@ -174,22 +172,6 @@ def test_reinforce_skips_a_nan_update_of_its_policy_and_its_baseline():
     assert agent.guard.skipped.item() == 1  # one update, counted once for its two steps
 
 
-def _tiny_dataset() -> OfflineData:
-    rng = np.random.default_rng(0)
-    steps = 12
-    episodes = [
-        Episode(
-            rng.normal(size=(steps + 1, 3)).astype(np.float32),
-            rng.uniform(-2, 2, size=(steps, 1)).astype(np.float32),
-            rng.normal(size=steps).astype(np.float32),
-            np.zeros(steps, bool),
-            np.arange(steps) == steps - 1,
-        )
-        for _ in range(3)
-    ]
-    return OfflineData("tiny", "Pendulum-v1", episodes, None, None)
-
-
 def test_a_decision_transformer_skips_a_nan_batch_and_learns_after_it():
     small = defaults_for(
         DecisionTransformer,
@@ -201,7 +183,7 @@ def test_a_decision_transformer_skips_a_nan_batch_and_learns_after_it():
         warmup_steps=10,
         max_episode_steps=50,
     )
-    agent = DecisionTransformer(3, [-2.0], [2.0], dataset=_tiny_dataset(), **small)
+    agent = DecisionTransformer(3, [-2.0], [2.0], dataset=tiny_offline_data(), **small)
     sample = agent.sampler.sample
 
     def update(poison: float | None) -> dict:

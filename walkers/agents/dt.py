@@ -24,7 +24,7 @@ import torch
 
 from walkers.agents.base import Agent, Transition, resolve_device
 from walkers.agents.health import NonFiniteGuard, guarded_agent_step
-from walkers.agents.transformer import DecisionTransformerModel
+from walkers.agents.transformer import DecisionTransformerModel, autocast
 from walkers.data.sequences import SequenceSampler
 from walkers.seeding import stream_seeds
 
@@ -51,6 +51,7 @@ class DecisionTransformer(Agent):
         warmup_steps: int,
         batch_size: int,
         grad_clip: float,
+        precision: str,
         max_episode_steps: int,
         return_scale: float,
         target_returns: Sequence[float] | None,
@@ -61,6 +62,7 @@ class DecisionTransformer(Agent):
             raise ValueError(f"embed_dim={embed_dim} must be a multiple of n_heads={n_heads}")
         self.device = resolve_device(device)
         self.context, self.batch_size, self.grad_clip = context_length, batch_size, grad_clip
+        self.precision = precision
         self.return_scale, self.max_timestep = float(return_scale), int(max_episode_steps)
         low = np.asarray(action_low, dtype=np.float32)
         high = np.asarray(action_high, dtype=np.float32)
@@ -130,13 +132,13 @@ class DecisionTransformer(Agent):
         n = len(c["obs"])
         timesteps = torch.arange(self._step - n + 1, self._step + 1, device=self.device)
         self.model.eval()
-        with torch.no_grad():
+        with torch.no_grad(), autocast(self.device, self.precision):
             predicted = self.model(
                 torch.stack(c["returns_to_go"])[None],
                 torch.stack(c["obs"])[None],
                 torch.stack(c["actions"])[None],
                 timesteps.clamp(max=self.max_timestep - 1)[None],
-            )[0, -1]
+            )[0, -1].float()
         c["actions"][-1] = predicted
         action = predicted.cpu().numpy() * self.action_half_range + self.action_center
         return np.clip(action, self.action_low, self.action_high).astype(np.float32)
@@ -155,8 +157,9 @@ class DecisionTransformer(Agent):
             raise RuntimeError("a Decision Transformer needs a dataset to learn from")
         self.model.train()
         b = self.sampler.sample(self.batch_size)
-        predicted = self.model(b.returns_to_go, b.obs, b.actions, b.timesteps)
-        squared_error = (predicted - b.actions).pow(2).mean(dim=-1)
+        with autocast(self.device, self.precision):
+            predicted = self.model(b.returns_to_go, b.obs, b.actions, b.timesteps)
+        squared_error = (predicted.float() - b.actions).pow(2).mean(dim=-1)
         loss = (squared_error * b.mask).sum() / b.mask.sum()
         step = guarded_agent_step(
             self.optimizer, loss, max_grad_norm=self.grad_clip, scheduler=self.scheduler

@@ -24,6 +24,15 @@ from torch import nn
 
 TOKENS_PER_STEP = 3  # return-to-go, state, action
 INIT_STD = 0.02  # GPT-2's initializer_range
+#: ``algo.precision``: the dtype the transformer runs in under autocast (None: plain fp32)
+PRECISIONS = {"fp32": None, "bf16": torch.bfloat16}
+
+
+def autocast(device: torch.device, precision: str):
+    """The context the transformer runs in: bfloat16 autocast for ``bf16`` (matmuls and
+    attention in bfloat16, reductions, LayerNorm and the weights in fp32), nothing for ``fp32``."""
+    dtype = PRECISIONS[precision]
+    return torch.autocast(device.type, dtype=dtype or torch.float32, enabled=dtype is not None)
 
 
 class CausalSelfAttention(nn.Module):

@@ -90,8 +90,8 @@ bench-sequential: $(STAMP)  ## the A/B study's stopping rule by simulation: fami
 bench-scale: $(STAMP)  ## a seed study through joblib vs a loopback Ray cluster of 1 and 2 workers; the study and a sweep with N workers on paper
 	$(PY) benchmarks/bench_scale.py $(ARGS)
 
-menus: $(STAMP)  ## rewrite conf/algo/*.yaml from the hyperparameters declared in walkers/agents/schemas.py, and conf/train.yaml's run settings from walkers/training/settings.py
-	$(PY) -m walkers.agents.menus
+menus: $(STAMP)  ## rewrite conf/algo/*.yaml from the hyperparameters declared in walkers/agents/declarations/schemas.py, and conf/train.yaml's run settings from walkers/training/settings.py
+	$(PY) -m walkers.agents.declarations.menus
 	$(PY) -m walkers.training.settings
 
 lint: $(STAMP)  ## ruff (style, common bugs) and lint-imports (imports point down the layers)

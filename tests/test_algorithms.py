@@ -12,9 +12,9 @@ from tests.conftest import DESIGN_METRICS, TINY, all_runs, compose_cfg
 from tests.fingerprints import CASES
 from walkers.agents.base import Transition
 from walkers.agents.ddpg import DDPG
+from walkers.agents.declarations.schemas import SCHEMAS
 from walkers.agents.factory import defaults_for
 from walkers.agents.reinforce import Reinforce, returns_to_go
-from walkers.agents.schemas import SCHEMAS
 from walkers.train import train
 from walkers.training.envs import make_env
 

@@ -13,9 +13,9 @@ import torch
 
 from tests.conftest import TINY, compose_cfg, tiny_offline_data
 from walkers.agents.base import Transition
+from walkers.agents.common.health import SKIPPED, SKIPPED_IN_A_ROW, guarded_agent_step, guarded_step
 from walkers.agents.dt import DecisionTransformer
 from walkers.agents.factory import build_agent, defaults_for
-from walkers.agents.health import SKIPPED, SKIPPED_IN_A_ROW, guarded_agent_step, guarded_step
 from walkers.agents.ppo import PPO
 from walkers.agents.reinforce import Reinforce
 from walkers.data.replay import ReplayBuffer

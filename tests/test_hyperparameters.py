@@ -1,7 +1,7 @@
-"""Each hyperparameter declared once (walkers/agents/schemas.py): the yaml menus are written from
-the declarations, the config check is derived from them, and the agents' constructors carry no
-defaults of their own. The run's own settings likewise (walkers/training/settings.py): the block
-of conf/train.yaml is written from them and the config check derived."""
+"""Each hyperparameter declared once (walkers/agents/declarations/schemas.py): the yaml menus are
+written from the declarations, the config check is derived from them, and the agents' constructors
+carry no defaults of their own. The run's own settings likewise (walkers/training/settings.py): the
+block of conf/train.yaml is written from them and the config check derived."""
 
 from __future__ import annotations
 
@@ -18,9 +18,9 @@ from omegaconf import OmegaConf
 from tests.conftest import compose_cfg
 from walkers import PROJECT_ROOT
 from walkers.agents.ddpg import DDPG
+from walkers.agents.declarations.menus import menu, write_menus
+from walkers.agents.declarations.schemas import SCHEMAS
 from walkers.agents.factory import defaults_for
-from walkers.agents.menus import menu, write_menus
-from walkers.agents.schemas import SCHEMAS
 from walkers.agents.td3 import TD3
 from walkers.errors import ConfigError
 from walkers.training.settings import RunSettings, train_yaml, write_train_yaml
@@ -30,7 +30,9 @@ DECLARED = [(name, f.name) for name, schema in SCHEMAS.items() for f in fields(s
 SETTINGS = {f.name: f for f in fields(RunSettings)}
 
 
-@pytest.mark.parametrize("module", ["walkers.agents.menus", "walkers.training.settings"])
+@pytest.mark.parametrize(
+    "module", ["walkers.agents.declarations.menus", "walkers.training.settings"]
+)
 def test_the_menus_are_written_from_the_declarations(module):
     assert write_menus(check=True) == []
     assert write_train_yaml(check=True) == []

@@ -2,7 +2,7 @@
 TD3, DDPG, SAC, CrossQ and PPO.
 
 Each test builds walkers' agent and SB3's model from the same walkers hyperparameters (SB3's
-through the impl=sb3 mapping, :class:`walkers.agents.sb3_twin.SB3Twin`), with 32-32 networks on a
+through the impl=sb3 mapping, :class:`walkers.agents.sb3.twin.SB3Twin`), with 32-32 networks on a
 made-up space (obs 3, actions 2 in [-1, 1]: SB3 acts in [-1, 1], so with these bounds both sides
 feed their critics the same numbers); copies SB3's weights into walkers' (SB3's targets perturbed
 first, so no target equals its online net; CrossQ's renormalization statistics set as in a run in
@@ -58,10 +58,10 @@ import torch
 from torch import nn
 
 from walkers.agents.base import Transition
+from walkers.agents.common.networks import EnsembleLinear
 from walkers.agents.crossq import CrossQ
 from walkers.agents.ddpg import DDPG
 from walkers.agents.factory import defaults_for
-from walkers.agents.networks import EnsembleLinear
 from walkers.agents.ppo import PPO
 from walkers.agents.sac import SAC
 from walkers.agents.td3 import TD3
@@ -71,7 +71,7 @@ pytest.importorskip("stable_baselines3")
 from stable_baselines3.common import policies as sb3_policies  # noqa: E402
 from stable_baselines3.common.type_aliases import ReplayBufferSamples  # noqa: E402
 
-from walkers.agents.sb3_twin import SB3Twin  # noqa: E402
+from walkers.agents.sb3.twin import SB3Twin  # noqa: E402
 
 OBS_DIM, ACT_DIM, BATCH, HIDDEN = 3, 2, 32, [32, 32]
 LOW, HIGH = [-1.0] * ACT_DIM, [1.0] * ACT_DIM
@@ -722,7 +722,7 @@ def test_crossq_renormalization_gradient_for_a_constant_feature_matches_sb3_cont
     pytest.importorskip("sb3_contrib")
     from sb3_contrib.common.torch_layers import BatchRenorm1d
 
-    from walkers.agents.renorm import EnsembleBatchRenorm
+    from walkers.agents.common.renorm import EnsembleBatchRenorm
 
     g = torch.Generator().manual_seed(4)
     x, upstream = torch.randn(2, BATCH, 3, generator=g)

@@ -14,9 +14,9 @@ from torch.distributions import Normal, TanhTransform, TransformedDistribution
 
 from tests.conftest import TINY, all_runs, compose_cfg, new_store, run_cli
 from walkers.agents.base import Transition
+from walkers.agents.common.networks import EnsembleGaussianActor, tanh_log_det_jacobian
 from walkers.agents.crossq import CrossQ
 from walkers.agents.factory import defaults_for
-from walkers.agents.networks import EnsembleGaussianActor, tanh_log_det_jacobian
 from walkers.agents.sac import SAC
 from walkers.train import train
 from walkers.training import checkpoints

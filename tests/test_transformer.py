@@ -6,7 +6,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from walkers.agents.transformer import DecisionTransformerModel
+from walkers.agents.common.transformer import DecisionTransformerModel
 
 OBS, ACT, STEPS, BATCH = 5, 2, 8, 3
 

@@ -12,7 +12,7 @@ Offline agents (``offline = True``, e.g. the Decision Transformer) learn from a 
 the trainer calls only ``update`` in a loop. Sequence policies also see episode boundaries and
 rewards while they act (``begin_episode``, ``record_reward``); the others ignore both.
 
-Stable-Baselines3's twins (``impl=sb3``, :mod:`walkers.agents.sb3_twin`) learn inside SB3's
+Stable-Baselines3's twins (``impl=sb3``, :mod:`walkers.agents.sb3.twin`) learn inside SB3's
 own loop: of this interface they act greedily (evaluations, videos) and checkpoint.
 
 ``update`` returns detached scalar tensors (not floats) so the hot loop never forces a

@@ -6,7 +6,7 @@ policy's samples) with three changes:
 
 - no target networks: the target bootstraps from the live critics;
 - Batch Renormalization before every linear layer of the critics and the actor
-  (:mod:`walkers.agents.renorm`), and wide critics (2048 units in the paper);
+  (:mod:`walkers.agents.common.renorm`), and wide critics (2048 units in the paper);
 - one joint forward pass of the critics over (s, a) and (s', a'), a' ~ pi(.|s'), so the batch
   statistics are those of the mixture of both: the target comes out of the same pass, under
   stop-gradient. Evaluated apart, (s', a') would look out of distribution to the normalization.
@@ -35,16 +35,16 @@ from functools import partial
 
 import torch
 
-from walkers.agents.actor_critic import frozen, logged
-from walkers.agents.health import guarded_step
-from walkers.agents.renorm import RenormCriticEnsemble, RenormGaussianActor, batch_statistics
+from walkers.agents.common.actor_critic import frozen, logged
+from walkers.agents.common.health import guarded_step
+from walkers.agents.common.renorm import RenormCriticEnsemble, RenormGaussianActor, batch_statistics
 from walkers.agents.sac import SoftActorCritic
 from walkers.data.replay import Batch
 
 
 class CrossQ(SoftActorCritic):
-    """CrossQ; hyperparameters (the paper's, declared in :mod:`walkers.agents.schemas`) are the
-    core's and SAC's temperature's, plus the actor's delay, the critics' widths and the
+    """CrossQ; hyperparameters (the paper's, declared in :mod:`walkers.agents.declarations.schemas`)
+    are the core's and SAC's temperature's, plus the actor's delay, the critics' widths and the
     renormalization's ``renorm_momentum`` and ``renorm_warmup_steps``."""
 
     def __init__(

@@ -10,9 +10,9 @@ class DDPG(TD3):
     smoothing, the actor and targets updated at every critic update. Its constructor takes no
     ``policy_noise``, ``noise_clip`` or ``policy_delay`` (TD3's refuses them for DDPG).
 
-    Otherwise TD3 (declared in :mod:`walkers.agents.schemas`), including the tutorial's variants:
-    ``critic_architecture=layernorm_branch`` (state layers ``critic_hidden_sizes`` of Linear +
-    LayerNorm + ReLU, the action merged at the last hidden layer) and ``noise_type=ou``
+    Otherwise TD3 (declared in :mod:`walkers.agents.declarations.schemas`), including the tutorial's
+    variants: ``critic_architecture=layernorm_branch`` (state layers ``critic_hidden_sizes`` of
+    Linear + LayerNorm + ReLU, the action merged at the last hidden layer) and ``noise_type=ou``
     (Ornstein-Uhlenbeck exploration).
     """
 

@@ -23,14 +23,15 @@ import numpy as np
 import torch
 
 from walkers.agents.base import Agent, Transition, resolve_device
-from walkers.agents.health import NonFiniteGuard, guarded_agent_step
-from walkers.agents.transformer import DecisionTransformerModel, autocast
+from walkers.agents.common.health import NonFiniteGuard, guarded_agent_step
+from walkers.agents.common.transformer import DecisionTransformerModel, autocast
 from walkers.data.sequences import SequenceSampler
 from walkers.seeding import stream_seeds
 
 
 class DecisionTransformer(Agent):
-    """Hyperparameters: declared, with the reference defaults, in walkers.agents.schemas."""
+    """Hyperparameters: declared, with the reference defaults, in
+    walkers.agents.declarations.schemas."""
 
     offline = True
 

@@ -17,9 +17,9 @@ from them (Algorithm 1 of the paper):
         with one Adam step, the global gradient norm clipped to ``max_grad_norm``,
     the learning rate annealed linearly to 0 over the run's ``total_steps``.
 
-Observation normalization and reward scaling (:mod:`walkers.agents.normalization`) happen inside
-the agent, so what the trainer reports (``train/episode_return``, ``eval/*``) are the env's own
-returns; their statistics update only while exploring and are saved in the checkpoint.
+Observation normalization and reward scaling (:mod:`walkers.agents.common.normalization`) happen
+inside the agent, so what the trainer reports (``train/episode_return``, ``eval/*``) are the env's
+own returns; their statistics update only while exploring and are saved in the checkpoint.
 
 Action bounds: as in REINFORCE here (and in the reference code), the env receives the Gaussian
 sample clipped to its bounds; the log-probability is that of the unclipped sample.
@@ -43,9 +43,9 @@ import numpy as np
 import torch
 
 from walkers.agents.base import Agent, Transition, resolve_device
-from walkers.agents.health import NonFiniteGuard, guarded_agent_step
-from walkers.agents.normalization import ObservationNormalizer, RewardScaler
-from walkers.agents.policies import GaussianPolicy, orthogonal_mlp
+from walkers.agents.common.health import NonFiniteGuard, guarded_agent_step
+from walkers.agents.common.normalization import ObservationNormalizer, RewardScaler
+from walkers.agents.common.policies import GaussianPolicy, orthogonal_mlp
 from walkers.data.rollouts import Rollout, gae
 from walkers.seeding import restore_generator, torch_generator
 
@@ -81,7 +81,8 @@ def value_loss(
 
 
 class PPO(Agent):
-    """Hyperparameters: declared, with the MuJoCo reference defaults, in walkers.agents.schemas."""
+    """Hyperparameters: declared, with the MuJoCo reference defaults, in
+    walkers.agents.declarations.schemas."""
 
     def __init__(
         self,

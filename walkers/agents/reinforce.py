@@ -32,9 +32,9 @@ import numpy as np
 import torch
 
 from walkers.agents.base import Agent, Transition, resolve_device
-from walkers.agents.health import NonFiniteGuard, guarded_agent_step
-from walkers.agents.networks import mlp
-from walkers.agents.policies import GaussianPolicy
+from walkers.agents.common.health import NonFiniteGuard, guarded_agent_step
+from walkers.agents.common.networks import mlp
+from walkers.agents.common.policies import GaussianPolicy
 from walkers.data.rollouts import Rollout, returns_to_go
 from walkers.seeding import restore_generator, torch_generator
 

@@ -5,7 +5,7 @@ Algorithms and Applications", the "v2" paper's Algorithm 1).
 maximum-entropy parts:
 
 - the actor is a squashed Gaussian, a = tanh(mu(s) + sigma(s) * eps) scaled onto the bounds,
-  eps ~ N(0, I) (:class:`~walkers.agents.networks.EnsembleGaussianActor`);
+  eps ~ N(0, I) (:class:`~walkers.agents.common.networks.EnsembleGaussianActor`);
 - the temperature alpha, learned on log alpha (the reference implementations' parameterization)
   with its own Adam: J(alpha) = E[-alpha (log pi(a|s) + H_target)], H_target = -|A|;
 - exploration samples the policy itself (eps from each member's exploration stream; uniform random
@@ -24,10 +24,10 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from walkers.agents.actor_critic import ActorCritic, frozen, logged
-from walkers.agents.health import guarded_step
-from walkers.agents.networks import EnsembleGaussianActor, Temperature, soft_update
-from walkers.agents.noise import GaussianNoise
+from walkers.agents.common.actor_critic import ActorCritic, frozen, logged
+from walkers.agents.common.health import guarded_step
+from walkers.agents.common.networks import EnsembleGaussianActor, Temperature, soft_update
+from walkers.agents.common.noise import GaussianNoise
 from walkers.data.replay import Batch
 
 
@@ -104,7 +104,7 @@ class SoftActorCritic(ActorCritic):
 
 class SAC(SoftActorCritic):
     """Soft Actor-Critic v2: twin critics with target copies, no target actor; hyperparameters
-    declared in :mod:`walkers.agents.schemas`."""
+    declared in :mod:`walkers.agents.declarations.schemas`."""
 
     def __init__(self, obs_dim, action_low, action_high, **hyperparameters):
         super().__init__(obs_dim, action_low, action_high, **hyperparameters)

@@ -16,7 +16,7 @@ c are fractions of the action half-range; d is terminated only (a time limit's t
 bootstraps). The three ideas (twin critics with the min, target policy smoothing, delayed
 updates) are the class attributes and arguments below, so DDPG (:mod:`walkers.agents.ddpg`) is
 this class with the three switched off. What every off-policy agent shares (replay, ensembles,
-the NaN guard, populations, checkpoints) is :mod:`walkers.agents.actor_critic`.
+the NaN guard, populations, checkpoints) is :mod:`walkers.agents.common.actor_critic`.
 """
 
 from __future__ import annotations
@@ -24,17 +24,17 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from walkers.agents.actor_critic import ActorCritic, frozen, logged
-from walkers.agents.health import guarded_step
-from walkers.agents.networks import soft_update
-from walkers.agents.noise import NOISE_TYPES, GaussianNoise
+from walkers.agents.common.actor_critic import ActorCritic, frozen, logged
+from walkers.agents.common.health import guarded_step
+from walkers.agents.common.networks import soft_update
+from walkers.agents.common.noise import NOISE_TYPES, GaussianNoise
 from walkers.data.replay import Batch
 
 
 class TD3(ActorCritic):
     """Clipped double-Q (two critics), target policy smoothing, delayed policy updates; other
     hyperparameters (``lr``, ``batch_size``, ``tau``, ...) are the core's. Each is declared, with
-    its default (the paper's) and doc, in :mod:`walkers.agents.schemas`.
+    its default (the paper's) and doc, in :mod:`walkers.agents.declarations.schemas`.
 
     ``policy_noise``/``noise_clip`` (smoothing) and ``policy_delay`` are required while the class
     uses the idea; a subclass that turns it off (DDPG) takes none."""

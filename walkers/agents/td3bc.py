@@ -35,8 +35,9 @@ STD_EPS = 1e-3  # added to the dataset's state std (the reference code's)
 
 class TD3BC(TD3):
     """Hyperparameters: TD3's (lr, batch_size, ..., policy_delay) with ``alpha`` and
-    ``normalize_states``, declared with the reference defaults in :mod:`walkers.agents.schemas`.
-    No warm-up, no exploration noise, one member: the buffer is the dataset."""
+    ``normalize_states``, declared with the reference defaults in
+    :mod:`walkers.agents.declarations.schemas`. No warm-up, no exploration noise, one member: the
+    buffer is the dataset."""
 
     offline = True
 

@@ -20,7 +20,7 @@ import gymnasium as gym
 import torch
 
 from walkers.agents.base import Agent
-from walkers.agents.health import SKIPPED_IN_A_ROW
+from walkers.agents.common.health import SKIPPED_IN_A_ROW
 from walkers.analysis.stats import run_summary
 from walkers.seeding import (
     env_rng_state,

@@ -22,9 +22,9 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from walkers.agents.actor_critic import ActorCritic
 from walkers.agents.base import Agent, Transition
-from walkers.agents.sb3_twin import SB3Twin
+from walkers.agents.common.actor_critic import ActorCritic
+from walkers.agents.sb3.twin import SB3Twin
 from walkers.training.bookkeeping import RunBook
 
 

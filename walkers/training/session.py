@@ -18,7 +18,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from walkers import tracking
 from walkers.agents.factory import build_agent
-from walkers.agents.sb3_twin import SB3Twin
+from walkers.agents.sb3.twin import SB3Twin
 from walkers.errors import ConfigError
 from walkers.training import resume
 from walkers.training.bookkeeping import RunBook

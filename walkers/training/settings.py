@@ -1,7 +1,8 @@
 """The run's own settings (``total_steps``, ``eval_every``, ``seed``, ``device``...), declared once.
 
-Like an algorithm's hyperparameters (:mod:`walkers.agents.hyperparameters`), each setting is a
-field of :class:`RunSettings` made by ``hp(default, allowed, doc)``, and the rest follows from it:
+Like an algorithm's hyperparameters (:mod:`walkers.agents.declarations.hyperparameters`), each
+setting is a field of :class:`RunSettings` made by ``hp(default, allowed, doc)``, and the rest
+follows from it:
 
 - the run-setting block of ``conf/train.yaml``, each value commented with its doc
   (:func:`write_train_yaml`, ``make menus``; a test holds it in step with the declaration). The
@@ -27,11 +28,17 @@ from hydra.utils import get_class
 from omegaconf import DictConfig, OmegaConf
 
 from walkers import PROJECT_ROOT
-from walkers.agents import menus
-from walkers.agents.hyperparameters import NON_NEGATIVE_INT, POSITIVE_INT, Allowed, hp, or_null
-from walkers.agents.menus import entry, yaml_value  # the algorithm menus' layout
-from walkers.agents.sb3_arguments import SB3_CLASSES
-from walkers.agents.schemas import SCHEMAS, Replay
+from walkers.agents.declarations import menus
+from walkers.agents.declarations.hyperparameters import (
+    NON_NEGATIVE_INT,
+    POSITIVE_INT,
+    Allowed,
+    hp,
+    or_null,
+)
+from walkers.agents.declarations.menus import entry, yaml_value  # the algorithm menus' layout
+from walkers.agents.declarations.schemas import SCHEMAS, Replay
+from walkers.agents.sb3.arguments import SB3_CLASSES
 from walkers.metrics import METRIC_DIRECTIONS
 
 OPTIMIZABLE_METRICS = tuple(METRIC_DIRECTIONS)  # every metric a sweep can optimize

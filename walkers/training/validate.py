@@ -2,8 +2,8 @@
 
 The run's settings and the env's are checked by :data:`RULES` (a dotted key and what is allowed;
 the run's as declared in :mod:`walkers.training.settings`), the algorithm's hyperparameters
-against their one declaration (:mod:`walkers.agents.schemas`), then what needs several keys at
-once. Every error is one line naming the key, the value and what is allowed.
+against their one declaration (:mod:`walkers.agents.declarations.schemas`), then what needs several
+keys at once. Every error is one line naming the key, the value and what is allowed.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ import re
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import InterpolationResolutionError
 
-from walkers.agents.hyperparameters import (
+from walkers.agents.declarations.hyperparameters import (
     NON_NEGATIVE_INT,
     NUMBER,
     POSITIVE_INT,
@@ -21,15 +21,16 @@ from walkers.agents.hyperparameters import (
     or_null,
     problems,
 )
-from walkers.agents.sb3_arguments import NotExpressible, sb3_arguments
-from walkers.agents.sb3_twin import import_sb3
-from walkers.agents.schemas import SCHEMAS, schema_of
+from walkers.agents.declarations.schemas import SCHEMAS, schema_of
+from walkers.agents.sb3.arguments import NotExpressible, sb3_arguments
+from walkers.agents.sb3.twin import import_sb3
 from walkers.errors import ConfigError
 from walkers.training import settings
 from walkers.training.provenance import worker_name
 
 #: The run's own settings as declared (:mod:`walkers.training.settings`), then the env's; an
-#: algorithm's hyperparameters are checked against theirs (:mod:`walkers.agents.schemas`).
+#: algorithm's hyperparameters are checked against theirs
+#: (:mod:`walkers.agents.declarations.schemas`).
 RULES: list[tuple[str, Allowed]] = [
     *settings.RULES,
     ("env.max_episode_steps", or_null(POSITIVE_INT)),

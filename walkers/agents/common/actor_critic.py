@@ -11,16 +11,16 @@ Each algorithm owns its update, written in its paper's order in its own module:
 This core holds only what they share, none of it particular to one algorithm: the actor and
 critic ensembles and their Adam optimizers, the replay buffers and the uniform random warm-up,
 acting, one mini-batch per member (:meth:`ActorCritic.sample`), the NaN/inf guard's counters
-(the steps themselves go through :func:`~walkers.agents.health.guarded_step`), target networks
-for those that have them (:meth:`target_of`, :func:`~walkers.agents.networks.soft_update`),
-``compile``, populations and checkpoints.
+(the steps themselves go through :func:`~walkers.agents.common.health.guarded_step`), target
+networks for those that have them (:meth:`target_of`,
+:func:`~walkers.agents.common.networks.soft_update`), ``compile``, populations and checkpoints.
 
 Every network is an ensemble with a leading *member* dimension: a single agent is a population of
 one, ``population=K`` trains K independent seeds (``seed, seed + 1, ...``) with one batched
 matmul a layer for all of them. Each member has its own replay buffer, exploration noise and RNG
 (:class:`Member`); losses are sums of per-member losses, so each member's gradient is its own,
 and Adam, being elementwise, keeps members independent under one optimizer. Cutting a member out
-as a single agent and loading it back is :mod:`walkers.agents.population`.
+as a single agent and loading it back is :mod:`walkers.agents.common.population`.
 """
 
 from __future__ import annotations
@@ -33,12 +33,12 @@ import numpy as np
 import torch
 from torch import nn
 
-from walkers.agents import population as members_io
 from walkers.agents.base import Agent, Transition, resolve_device
-from walkers.agents.health import NonFiniteGuard
-from walkers.agents.networks import EnsembleActor, make_critic
-from walkers.agents.noise import GaussianNoise
-from walkers.agents.population import Member
+from walkers.agents.common import population as members_io
+from walkers.agents.common.health import NonFiniteGuard
+from walkers.agents.common.networks import EnsembleActor, make_critic
+from walkers.agents.common.noise import GaussianNoise
+from walkers.agents.common.population import Member
 from walkers.data.replay import Batch, ReplayBuffer
 from walkers.seeding import numpy_rng, stream_seeds
 
@@ -276,7 +276,7 @@ class ActorCritic(Agent):
             f"({self.refill_kind})"
         }
 
-    # --- a population's members one at a time (walkers.agents.population) -------------------
+    # --- a population's members one at a time (walkers.agents.common.population) ---------------
     def member_cuts(self, i: int) -> dict[str, slice]:
         """Member ``i``'s slice of the leading dimension of every per-member part, by attribute
         name: modules (their state dicts) and optimizers (their Adam moments). A member's

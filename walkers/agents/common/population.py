@@ -1,13 +1,13 @@
 """A seed population's members one at a time: cut out as single agents, loaded back, acting alone.
 
-An :class:`~walkers.agents.actor_critic.ActorCritic` with ``population=K`` holds K members along
-the leading dimension of every network, optimizer moment and guard counter (the critics C per
-member; which parts, and each member's slice of them, the agent declares in ``member_cuts``), and
-a :class:`Member` each (its RNG, exploration noise and replay buffer). A single agent is
-the same with K = 1, so member ``i`` cut out (:func:`member_state_dict`) is exactly a single agent's
+An :class:`~walkers.agents.common.actor_critic.ActorCritic` with ``population=K`` holds K members
+along the leading dimension of every network, optimizer moment and guard counter (the critics C per
+member; which parts, and each member's slice of them, the agent declares in ``member_cuts``), and a
+:class:`Member` each (its RNG, exploration noise and replay buffer). A single agent is the same with
+K = 1, so member ``i`` cut out (:func:`member_state_dict`) is exactly a single agent's
 ``state_dict()``, and a population's is the list of its members'. A member's state loads into an
-ordinary agent (``walkers.evaluate``, ``walkers.collect``, ``resume=`` to continue it alone) or
-back into a population (:func:`load_member_state_dict`, ``resume=[id,id,...]``).
+ordinary agent (``walkers.evaluate``, ``walkers.collect``, ``resume=`` to continue it alone) or back
+into a population (:func:`load_member_state_dict`, ``resume=[id,id,...]``).
 """
 
 from __future__ import annotations
@@ -19,8 +19,8 @@ import numpy as np
 import torch
 
 from walkers.agents.base import Agent, Transition
-from walkers.agents.health import NonFiniteGuard
-from walkers.agents.noise import GaussianNoise
+from walkers.agents.common.health import NonFiniteGuard
+from walkers.agents.common.noise import GaussianNoise
 from walkers.data.replay import ReplayBuffer
 
 
@@ -47,7 +47,7 @@ class Member:
 
 class Population(Protocol):
     """What member I/O needs of an agent with members (an
-    :class:`~walkers.agents.actor_critic.ActorCritic`, which imports this module)."""
+    :class:`~walkers.agents.common.actor_critic.ActorCritic`, which imports this module)."""
 
     members: list[Member]
     guard: NonFiniteGuard

@@ -1,7 +1,8 @@
 """The readable menus ``conf/algo/<name>.yaml``, written from the declarations in
-:mod:`walkers.agents.schemas` (``make menus``; ``--check``: exit 1 when one is out of step).
+:mod:`walkers.agents.declarations.schemas` (``make menus``; ``--check``: exit 1 when one is out of
+step).
 
-    python -m walkers.agents.menus [--check]
+    python -m walkers.agents.declarations.menus [--check]
 """
 
 from __future__ import annotations
@@ -13,8 +14,8 @@ from dataclasses import fields
 from pathlib import Path
 
 from walkers import PROJECT_ROOT
-from walkers.agents.hyperparameters import Hyperparameters
-from walkers.agents.schemas import SCHEMAS
+from walkers.agents.declarations.hyperparameters import Hyperparameters
+from walkers.agents.declarations.schemas import SCHEMAS
 
 COMMENT_COLUMN = 25
 
@@ -94,4 +95,4 @@ def main(write, source: str, argv: list[str]) -> int:
 
 
 if __name__ == "__main__":  # make menus
-    sys.exit(main(write_menus, "walkers/agents/schemas.py", sys.argv[1:]))
+    sys.exit(main(write_menus, "walkers/agents/declarations/schemas.py", sys.argv[1:]))

@@ -12,8 +12,8 @@ normalizes with the running statistics alone. The agent switches modes around ea
 networks stay in evaluation mode otherwise.
 
 Every statistic has a leading member dimension, like the weights of
-:class:`~walkers.agents.networks.EnsembleLinear`: members are independent seeds and critics, so
-each keeps its own statistics (and a population member's checkpoint is its slice of them).
+:class:`~walkers.agents.common.networks.EnsembleLinear`: members are independent seeds and critics,
+so each keeps its own statistics (and a population member's checkpoint is its slice of them).
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from walkers.agents.networks import EnsembleGaussianActor, EnsembleLinear
+from walkers.agents.common.networks import EnsembleGaussianActor, EnsembleLinear
 
 
 class EnsembleBatchRenorm(nn.Module):

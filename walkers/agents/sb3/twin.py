@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from walkers.agents.base import Agent, resolve_device
-from walkers.agents.sb3_arguments import sb3_arguments
+from walkers.agents.sb3.arguments import sb3_arguments
 from walkers.errors import ConfigError
 from walkers.seeding import stream_seeds
 

@@ -3,8 +3,8 @@
 Both use the parametrization of the reference PPO code (and of REINFORCE here): a Gaussian with a
 state-dependent mean and a learned, state-independent log standard deviation, independent across
 action dimensions. What differs is the mean network: REINFORCE's is the plain ReLU MLP of
-:func:`walkers.agents.networks.mlp`; PPO's is built by :func:`orthogonal_mlp` (tanh, orthogonal
-weights, zero biases), the initialisation its reference implementations use.
+:func:`walkers.agents.common.networks.mlp`; PPO's is built by :func:`orthogonal_mlp` (tanh,
+orthogonal weights, zero biases), the initialisation its reference implementations use.
 """
 
 from __future__ import annotations

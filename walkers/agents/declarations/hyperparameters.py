@@ -1,10 +1,11 @@
 """How a hyperparameter is declared: once, with its default, type, allowed values and doc.
 
-Each algorithm's hyperparameters are a dataclass (:mod:`walkers.agents.schemas`) whose fields are
-made by :func:`hp`. Everything else is derived from that one declaration:
+Each algorithm's hyperparameters are a dataclass (:mod:`walkers.agents.declarations.schemas`) whose
+fields are made by :func:`hp`. Everything else is derived from that one declaration:
 
-- the readable menu ``conf/algo/<name>.yaml`` (:mod:`walkers.agents.menus`, ``make menus``; a
-  test holds it in step with the declarations), each value commented with its doc;
+- the readable menu ``conf/algo/<name>.yaml`` (:mod:`walkers.agents.declarations.menus`,
+  ``make menus``; a test holds it in step with the declarations), each value commented with its
+  doc;
 - the check of a composed config (:func:`problems`, called by ``walkers.training.validate``):
   a one-line error naming the key, the bad value and what is allowed;
 - the agent's constructor arguments, which have no defaults of their own

@@ -138,7 +138,7 @@ def sb3_arguments(algo: str, hp: Mapping) -> dict:
     Returns ``{"class": name, "kwargs": {...}, "noise": (kind, sigma) | None,
     "normalize": {...} | None, "net_arch": ..., "activation": ...}``: the parts that need SB3
     objects (noise, schedules, activation functions, VecNormalize) as plain descriptions, which
-    :mod:`walkers.agents.sb3_twin` turns into objects. Raises :class:`NotExpressible`.
+    :mod:`walkers.agents.sb3.twin` turns into objects. Raises :class:`NotExpressible`.
     """
     check_algorithm(algo)
     unknown = sorted(set(hp) - set(MAPPING[algo]) - {"_target_", "name"})

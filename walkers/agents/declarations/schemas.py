@@ -1,14 +1,20 @@
-"""Each algorithm's hyperparameters, declared once (see :mod:`walkers.agents.hyperparameters`).
+"""Each algorithm's hyperparameters, declared once (see
+:mod:`walkers.agents.declarations.hyperparameters`).
 
 A class's docstring heads its menu ``conf/algo/<name>.yaml``; a field's doc comments its value
-there. ``make menus`` (:mod:`walkers.agents.menus`) rewrites the menus after a change here.
+there. ``make menus`` (:mod:`walkers.agents.declarations.menus`) rewrites the menus after a change
+here.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-from walkers.agents.hyperparameters import (
+from walkers.agents.common.networks import CRITIC_ARCHITECTURES
+from walkers.agents.common.noise import NOISE_TYPES
+from walkers.agents.common.policies import ACTIVATIONS
+from walkers.agents.common.transformer import PRECISIONS
+from walkers.agents.declarations.hyperparameters import (
     BOOL,
     DISCOUNT,
     DROPOUT,
@@ -26,10 +32,6 @@ from walkers.agents.hyperparameters import (
     one_of,
     or_null,
 )
-from walkers.agents.networks import CRITIC_ARCHITECTURES
-from walkers.agents.noise import NOISE_TYPES
-from walkers.agents.policies import ACTIVATIONS
-from walkers.agents.transformer import PRECISIONS
 
 COMPILE_DOC = (
     "torch.compile the loss computations (on CUDA with CUDA graphs, for\n"
@@ -390,7 +392,7 @@ class DecisionTransformerHyperparameters(Hyperparameters):
         "fp32",
         one_of(*PRECISIONS),
         "fp32 (the reference) | bf16: the transformer under bfloat16 autocast, weights and "
-        "optimizer in fp32 (about 1.8x faster on a CPU with AVX-512 BF16; other rounding)",
+        "optimizer in fp32 (1.35-1.57x faster a step on a CPU with AVX-512 BF16; other rounding)",
     )
     max_episode_steps: int = hp(
         1000, POSITIVE_INT, "timestep embeddings", env_key="max_episode_steps"

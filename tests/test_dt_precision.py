@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from tests.conftest import compose_cfg, tiny_offline_data
+from walkers.agents.common.transformer import cpu_has_native_bf16
 from walkers.agents.dt import DecisionTransformer
 from walkers.agents.factory import defaults_for
 from walkers.errors import ConfigError
@@ -83,3 +84,28 @@ def test_an_unknown_precision_is_refused_in_one_line():
         ConfigError, match=r"^algo.precision='fp16' is not allowed: must be fp32 or bf16"
     ):
         validate(compose_cfg(["algo=dt", "env=pendulum", "dataset=x", "algo.precision=fp16"]))
+
+
+EPYC_FLAGS = "flags\t\t: fpu vme sse sse2 avx avx2 avx512f avx512bw avx512vl avx512_vnni"
+
+
+@pytest.mark.parametrize(
+    "cpuinfo, native",
+    [
+        (f"processor\t: 0\n{EPYC_FLAGS}\n", False),
+        (f"processor\t: 0\n{EPYC_FLAGS} avx512_bf16\n", True),
+        (f"processor\t: 0\n{EPYC_FLAGS} amx_bf16 amx_tile\n", True),
+    ],
+)
+def test_native_bfloat16_is_read_from_the_cpu_flags(cpuinfo, native):
+    assert cpu_has_native_bf16(cpuinfo) is native
+
+
+@pytest.mark.parametrize("precision", ["fp32", "bf16"])
+def test_bf16_on_a_cpu_that_emulates_it_is_named_at_the_start(precision, caplog):
+    with caplog.at_level("WARNING", logger="walkers"):
+        _agent(precision)
+    emulated = precision == "bf16" and cpu_has_native_bf16() is False
+    assert ("bfloat16 is emulated here" in caplog.text) is emulated
+    if emulated:
+        assert "algo.precision=fp32" in caplog.text

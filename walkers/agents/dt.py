@@ -24,7 +24,11 @@ import torch
 
 from walkers.agents.base import Agent, Transition, resolve_device
 from walkers.agents.common.health import NonFiniteGuard, guarded_agent_step
-from walkers.agents.common.transformer import DecisionTransformerModel, autocast
+from walkers.agents.common.transformer import (
+    DecisionTransformerModel,
+    autocast,
+    warn_if_slow_precision,
+)
 from walkers.data.sequences import SequenceSampler
 from walkers.seeding import stream_seeds
 
@@ -64,6 +68,7 @@ class DecisionTransformer(Agent):
         self.device = resolve_device(device)
         self.context, self.batch_size, self.grad_clip = context_length, batch_size, grad_clip
         self.precision = precision
+        warn_if_slow_precision(self.device, precision)
         self.return_scale, self.max_timestep = float(return_scale), int(max_episode_steps)
         low = np.asarray(action_low, dtype=np.float32)
         high = np.asarray(action_high, dtype=np.float32)

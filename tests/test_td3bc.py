@@ -295,3 +295,62 @@ def test_td3bc_bad_input_is_one_line(chain):
                 )
             )
         assert len(all_runs(chain["client"])) == runs_before  # refused before any run was made
+
+
+DT_STEPS = 60  # gradient steps: a tiny DT beside TD3+BC's 300
+DT_RUN = [
+    "algo=dt",
+    "env=pendulum",
+    f"dataset={DATASET}",
+    f"total_steps={DT_STEPS}",
+    "eval_every=30",
+    "checkpoint_every=30",
+    "log_every=30",
+    "eval_episodes=1",
+    "algo.embed_dim=16",
+    "algo.n_layers=1",
+    "algo.context_length=4",
+    "algo.batch_size=8",
+    "algo.warmup_steps=10",
+    "progress=false",
+]
+
+
+def test_offline_algorithms_are_compared_each_at_its_own_budget(chain, tmp_path):
+    """DT for 60 gradient steps beside TD3+BC for 300, as their papers train each to its own
+    budget (TD3+BC 1M, DT 100k): one report, both budgets named, the final returns compared and
+    the AUCs (means over different spans) not. One budget for all keeps only the algorithm that
+    has it; a budget per algorithm picks each."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("MINARI_DATASETS_PATH", str(chain["path"] / "minari"))
+        train(compose_cfg([*DT_RUN, *chain["overrides"]]))
+
+    def report(*overrides: str):
+        return compare(
+            compose_cfg(
+                [
+                    *chain["overrides"],
+                    "env=pendulum",
+                    "algos=[td3bc,dt]",
+                    f"out={tmp_path}",
+                    "n_resamples=200",
+                    *overrides,
+                ],
+                config_name="compare",
+            )
+        )
+
+    comparison, out, _ = report()
+    assert comparison.budgets == {"gradient_steps": {"dt": DT_STEPS, "td3bc": STEPS}}
+    assert [p.quantity for p in comparison.pairs] == ["score"]
+    assert {r.algo: r.budget for r in comparison.algos} == {"td3bc": STEPS, "dt": DT_STEPS}
+    assert f"dt {DT_STEPS:,} and td3bc {STEPS:,} gradient steps" in (out / "report.md").read_text()
+    comparison, _, _ = report(f"gradient_steps={{td3bc:{STEPS},dt:{DT_STEPS}}}")
+    assert comparison.budgets == {"gradient_steps": {"dt": DT_STEPS, "td3bc": STEPS}}
+    with pytest.raises(ConfigError, match=r"has no finished Pendulum-v1 runs for dt .*budget"):
+        report(f"gradient_steps={STEPS}")
+    with pytest.raises(
+        ConfigError,
+        match=r"^gradient_steps=\{'dt': -5\} is not allowed: must be null, a positive integer",
+    ):
+        report("gradient_steps={dt:-5}")

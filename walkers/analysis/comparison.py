@@ -25,7 +25,7 @@ from itertools import combinations
 from pathlib import Path
 
 import numpy as np
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from walkers import tracking
 from walkers.analysis import stats
@@ -107,7 +107,7 @@ def compare_groups(
     pairs = []
     for a, b in chosen:
         quantities = [("score", a.scores, b.scores)]
-        if a.x_axis == b.x_axis:  # a rate of learning only compares on the same x-axis
+        if (a.x_axis, a.budget) == (b.x_axis, b.budget):  # a rate of learning compares alike
             quantities.append(("auc", a.auc, b.auc))
         for quantity, xa, xb in quantities:
             smallest = smallest_effect_abs or smallest_effect * max(
@@ -159,6 +159,15 @@ def _check(cfg: DictConfig) -> None:
         raise ConfigError(f"confidence={cfg.confidence!r} is not allowed: must be in (0, 1)")
     if not (isinstance(cfg.n_resamples, int) and cfg.n_resamples >= 100):
         raise ConfigError(f"n_resamples={cfg.n_resamples!r} is not allowed: must be >= 100")
+    for key in ("total_steps", "gradient_steps"):
+        value = cfg[key]
+        each = value.values() if key == "gradient_steps" and OmegaConf.is_dict(value) else [value]
+        if not all(v is None or (isinstance(v, int) and v > 0) for v in each):
+            shown = OmegaConf.to_container(value) if OmegaConf.is_config(value) else value
+            per_algo = " or {algo: steps, ...}" if key == "gradient_steps" else ""
+            raise ConfigError(
+                f"{key}={shown!r} is not allowed: must be null, a positive integer{per_algo}"
+            )
 
 
 def _check_group_by(group_by: list[str], runs: list, experiment: str) -> None:
@@ -249,6 +258,17 @@ def build_comparison(cfg: DictConfig):
 MAX_NAME, MAX_TAG = 250, 8000
 
 
+def budget_params(budgets: dict) -> dict[str, int]:
+    """``budget.<axis>``, or ``budget.<axis>.<algo>`` where offline algorithms differ."""
+    params = {}
+    for axis, budget in budgets.items():
+        if isinstance(budget, dict):
+            params |= {f"budget.{axis}.{mlflow_key(algo)}": b for algo, b in budget.items()}
+        else:
+            params[f"budget.{axis}"] = budget
+    return params
+
+
 def mlflow_key(name: str) -> str:
     """An arm's name as part of an MLflow param/metric key (letters, digits, ``_-. :`` only):
     ``td3 (algo.hidden_sizes=[64, 64])`` -> ``td3 algo.hidden_sizes:64 64``."""
@@ -277,7 +297,7 @@ def _log_report(client, cfg: DictConfig, comparison: Comparison, files: list[Pat
         tracker.log_params(
             {
                 "score": comparison.score,
-                **{f"budget.{axis}": b for axis, b in comparison.budgets.items()},
+                **budget_params(comparison.budgets),
                 "confidence": comparison.confidence,
                 "n_resamples": cfg.n_resamples,
                 **{f"runs.{mlflow_key(r.algo)}": len(r.runs) for r in comparison.algos},

@@ -93,10 +93,17 @@ def _steps(x: float | None, axis: str = ENV_STEPS) -> str:
 
 
 def budgets_text(c: Comparison) -> str:
-    """ "10,000 env steps; offline: 2,000 gradient steps on <dataset>"."""
+    """ "10,000 env steps; offline: 2,000 gradient steps on <dataset>" (or "dt 20,000 and td3bc
+    100,000 gradient steps" where offline algorithms differ)."""
     parts = []
     for axis, budget in c.budgets.items():
-        text = f"{budget:,} {AXIS_NAMES[axis]}" if budget else f"their budget in {AXIS_NAMES[axis]}"
+        if isinstance(budget, dict):  # offline algorithms, each at its own budget
+            each = " and ".join(f"{algo} {b:,}" for algo, b in budget.items())
+            text = f"{each} {AXIS_NAMES[axis]}"
+        elif budget:
+            text = f"{budget:,} {AXIS_NAMES[axis]}"
+        else:
+            text = f"their budget in {AXIS_NAMES[axis]}"
         if axis != ENV_STEPS:
             datasets = sorted({r.dataset for r in c.algos if r.x_axis == axis})
             text = f"offline: {text} on dataset {', '.join(map(str, datasets))}"

@@ -47,6 +47,7 @@ class SeedRun:
     cpu_hours: float | None = None  # the run's process CPU time (runs logged before: None)
     #: return-conditioned runs (DT): the final return at each target return, by target
     final_per_target: dict[str, float] = field(default_factory=dict)
+    budget: int | None = None  # its total_steps, on its x-axis
 
 
 @dataclass
@@ -74,6 +75,10 @@ class AlgoResult:
     @property
     def x_axis(self) -> str:
         return self.runs[0].x_axis
+
+    @property
+    def budget(self) -> int | None:
+        return self.runs[0].budget
 
     @property
     def label(self) -> str:
@@ -184,7 +189,9 @@ class PairResult:
 class Comparison:
     env_id: str
     threshold: float
-    budgets: dict[str, int]  # x-axis -> total_steps of the runs compared on it
+    #: x-axis -> total_steps of the runs compared on it (offline algorithms at different budgets:
+    #: algorithm -> total_steps)
+    budgets: dict[str, int | dict[str, int]]
     score: str
     confidence: float
     algos: list[AlgoResult]

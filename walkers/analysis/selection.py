@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import re
 from collections import Counter
+from collections.abc import Mapping
 
 import numpy as np
 
@@ -44,15 +45,18 @@ def select_runs(
     env_id: str,
     algos: list[str],
     budget: int | None,
-    gradient_budget: int | None = None,
+    gradient_budget: int | Mapping[str, int] | None = None,
     dataset: str | None = None,
 ):
     """The comparable training runs of ``algos`` on ``env_id``, and notes on the rest.
 
     Returns ``(chosen runs, budgets, notes)``: ``budgets`` maps each x-axis to the budget its runs
-    share, the given one (``budget`` for env steps, ``gradient_budget`` for offline runs) or else
-    the most common among the finished runs. Offline runs also share one dataset (``dataset``, or
-    the most common).
+    share, the given one (``budget`` for env steps) or else the most common among the finished
+    runs. Offline algorithms are each compared at their own budget, as their papers train them
+    (TD3+BC for 1M gradient steps, DT for 100k): ``gradient_budget`` (one for all, or one per
+    algorithm), else each algorithm's most common; ``budgets[GRADIENT_STEPS]`` is that budget
+    when they share one, else a mapping algorithm -> budget. Offline runs also share one dataset
+    (``dataset``, or the most common).
     """
     notes: list[str] = []
     training = [r for r in runs if r.data.tags.get(KIND_TAG, "train") == "train"]
@@ -90,19 +94,39 @@ def select_runs(
             r for r in finished if x_axis(r) == ENV_STEPS or r.data.tags.get("dataset") == dataset
         ]
     chosen, budgets = [], {}
-    for axis, given in ((ENV_STEPS, budget), (GRADIENT_STEPS, gradient_budget)):
-        on_axis = [r for r in finished if x_axis(r) == axis]
-        if not on_axis:
-            continue
-        budgets[axis] = given if given is not None else _most_common(_budget(r) for r in on_axis)
-        other = Counter(_budget(r) for r in on_axis if _budget(r) != budgets[axis])
-        if other:
-            notes.append(
-                f"{_runs(sum(other.values()))} with another budget than {budgets[axis]} "
-                f"{AXIS_NAMES[axis]} ({_listed(other, 'total_steps')})"
-            )
-        chosen += [r for r in on_axis if _budget(r) == budgets[axis]]
+    on_env_steps = [r for r in finished if x_axis(r) == ENV_STEPS]
+    if on_env_steps:
+        budgets[ENV_STEPS], kept = _one_budget(on_env_steps, budget, ENV_STEPS, notes)
+        chosen += kept
+    offline_by_algo: dict[str, list] = {}
+    for r in finished:
+        if x_axis(r) == GRADIENT_STEPS:
+            offline_by_algo.setdefault(r.data.tags.get("algo"), []).append(r)
+    offline_budgets = {}
+    for algo, algo_runs in sorted(offline_by_algo.items()):
+        given = gradient_budget
+        if isinstance(gradient_budget, Mapping):
+            given = gradient_budget.get(algo)
+        offline_budgets[algo], kept = _one_budget(algo_runs, given, GRADIENT_STEPS, notes, algo)
+        chosen += kept
+    if offline_budgets:
+        shared = set(offline_budgets.values())
+        budgets[GRADIENT_STEPS] = shared.pop() if len(shared) == 1 else offline_budgets
     return chosen, budgets, notes
+
+
+def _one_budget(runs: list, given: int | None, axis: str, notes: list[str], algo: str = ""):
+    """The budget ``runs`` are compared at (``given``, or their most common) and the runs that
+    have it; a note names the rest."""
+    chosen = given if given is not None else _most_common(_budget(r) for r in runs)
+    other = Counter(_budget(r) for r in runs if _budget(r) != chosen)
+    if other:
+        whose = f" of {algo}" if algo else ""
+        notes.append(
+            f"{_runs(sum(other.values()))}{whose} with another budget than {chosen} "
+            f"{AXIS_NAMES[axis]} ({_listed(other, 'total_steps')})"
+        )
+    return chosen, [r for r in runs if _budget(r) == chosen]
 
 
 def load_seed_runs(client, runs: list, threshold: float) -> dict[str, SeedRun]:
@@ -126,6 +150,7 @@ def load_seed_runs(client, runs: list, threshold: float) -> dict[str, SeedRun]:
             behaviour_return=_float(run.data.params.get("dataset_stats.behaviour_return")),
             cpu_hours=run.data.metrics.get("final/cpu_hours"),
             final_per_target=final_per_target(run.data.metrics),
+            budget=_budget(run),
         )
     return loaded
 

@@ -68,7 +68,7 @@ def compare_groups(
     *,
     env_id: str,
     threshold: float,
-    budgets: dict[str, int],
+    budgets: dict[str, int | dict[str, int]],
     score: str,
     confidence: float = 0.95,
     n_resamples: int = 5000,

@@ -95,6 +95,7 @@ EPYC_FLAGS = "flags\t\t: fpu vme sse sse2 avx avx2 avx512f avx512bw avx512vl avx
         (f"processor\t: 0\n{EPYC_FLAGS}\n", False),
         (f"processor\t: 0\n{EPYC_FLAGS} avx512_bf16\n", True),
         (f"processor\t: 0\n{EPYC_FLAGS} amx_bf16 amx_tile\n", True),
+        ("processor\t: 0\nFeatures\t: fp asimd bf16 sve\n", None),  # ARM: not told here
     ],
 )
 def test_native_bfloat16_is_read_from_the_cpu_flags(cpuinfo, native):

@@ -36,13 +36,16 @@ NATIVE_BF16_FLAGS = ("avx512_bf16", "amx_bf16")
 
 def cpu_has_native_bf16(cpuinfo: str | None = None) -> bool | None:
     """Whether this CPU multiplies bfloat16 natively (``/proc/cpuinfo``'s flags, or ``cpuinfo``
-    given); None where that cannot be read (not Linux)."""
+    given); None where that cannot be told (not Linux, not x86)."""
     if cpuinfo is None:
         try:
             cpuinfo = Path("/proc/cpuinfo").read_text()
         except OSError:
             return None
-    flags = {f for line in cpuinfo.splitlines() if line.startswith("flags") for f in line.split()}
+    lines = [line for line in cpuinfo.splitlines() if line.startswith("flags")]
+    if not lines:  # not x86 (an ARM CPU lists "Features"): unknown here, so no warning
+        return None
+    flags = {f for line in lines for f in line.split()}
     return any(flag in flags for flag in NATIVE_BF16_FLAGS)
 
 

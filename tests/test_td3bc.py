@@ -6,15 +6,28 @@ resume that goes on where it stopped.
 
 from __future__ import annotations
 
+import itertools
+import json
+import re
+
 import numpy as np
 import pytest
 import torch
 
-from tests.conftest import TINY, all_runs, compose_cfg, metric_steps, new_store
+from tests.conftest import (
+    TINY,
+    all_runs,
+    compose_cfg,
+    metric_steps,
+    new_store,
+    one_line_error,
+    run_cli,
+)
 from walkers.agents.factory import defaults_for
 from walkers.agents.td3 import TD3
 from walkers.agents.td3bc import TD3BC
 from walkers.analysis.comparison import compare
+from walkers.analysis.suite_report import compare_suite
 from walkers.data.datasets import OfflineData
 from walkers.data.episodes import Episode
 from walkers.data.replay import Batch
@@ -354,3 +367,74 @@ def test_offline_algorithms_are_compared_each_at_its_own_budget(chain, tmp_path)
         match=r"^gradient_steps=\{'dt': -5\} is not allowed: must be null, a positive integer",
     ):
         report("gradient_steps={dt:-5}")
+
+
+SECOND = "walkers/pendulum/tiny-td3-only-v0"
+
+
+def test_a_suite_of_datasets_aggregates_the_offline_arms_across_them(chain, tmp_path):
+    """TD3+BC and DT, 2 seeds each, on two datasets of one env: each dataset's report, then
+    the suite's over the offline arms (normalized on each dataset's references, the data's own
+    score beside them, DT per target, Holm over 2 pairs-on-datasets), from the CLI. A dataset
+    named without its version is found; a typo, a single dataset and envs= beside datasets= are
+    one-line errors."""
+    experiment = ["tracking.experiment=offline_suite"]
+    td3 = next(r for r in all_runs(chain["client"]) if r.data.tags.get("algo") == "td3")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("MINARI_DATASETS_PATH", str(chain["path"] / "minari"))
+        collect(
+            compose_cfg(
+                [f"run_id={td3.info.run_id}", "episodes=2", "random_episodes=2",
+                 f"dataset={SECOND}", "log_to_mlflow=false", *chain["overrides"]],
+                config_name="collect",
+            )
+        )  # fmt: skip
+        for dataset, seed in itertools.product((DATASET, SECOND), (0, 1)):
+            common = [f"dataset={dataset}", f"seed={seed}", *experiment, *chain["overrides"]]
+            train(compose_cfg([*TD3BC_RUN, "total_steps=100", "eval_every=50", *common]))
+            train(compose_cfg([*DT_RUN, "algo.target_returns=[-150,-900]", *common]))
+    out = tmp_path / "reports"
+    suite_cli = [
+        "env=pendulum", "algos=[td3bc,dt]", "n_resamples=200", f"out={out}", *experiment,
+        *chain["overrides"],
+    ]  # fmt: skip
+    result = run_cli(
+        [*suite_cli, f"datasets=[{DATASET},{SECOND.removesuffix('-v0')}]"],
+        cwd=chain["path"],
+        module="walkers.compare",
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "suite of 2 datasets: the highest normalized IQM is" in result.stdout
+    summary = json.loads((out / "datasets" / "summary.json").read_text())
+    assert set(summary["aggregates"]) == {"td3bc", "dt"}
+    assert set(summary["holm_adjusted"]) == {f"td3bc vs dt on {d}" for d in (DATASET, SECOND)}
+    assert summary["budgets"] == {"td3bc": 100, "dt": DT_STEPS}
+    hours = summary["cpu_hours"]["dt"]
+    assert hours[0] > 0 and hours[1:] == [4, 4]
+    for dataset in (DATASET, SECOND):  # references of each dataset: its random and its data
+        refs = summary["datasets"][dataset]
+        assert refs["own"] == pytest.approx(100.0) and refs["random"] != refs["reference"]
+        assert (out / dataset.replace("/", "_") / "report.md").is_file()  # each its own report
+    report = (out / "datasets" / "report.md").read_text()
+    assert "| the data's own | 100.0 | 100.0 |" in report
+    assert "## dt per target return" in report and "| -150 |" in report and "| -900 |" in report
+    assert "Budgets: td3bc 100 gradient steps; dt 60 gradient steps." in report
+    for name in ("performance_profile.png", "sample_efficiency.png"):
+        assert (out / "datasets" / name).stat().st_size > 1000
+
+    for bad, message in [
+        (f"datasets=[{DATASET},walkers/pendulum/tiny-td3-onyl]",
+         r"^error: dataset='walkers/pendulum/tiny-td3-onyl' is not allowed: no finished offline "
+         rf"run of Pendulum-v1 learned from it; datasets they learned from: {SECOND}, {DATASET}$"),
+        (f"datasets=[{DATASET}]", r"^error: datasets=\[.*\] is not allowed: two or more different"),
+        (f"datasets=[{SECOND},{SECOND.removesuffix('-v0')}]",
+         rf"^error: datasets=\[.*\] is not allowed: {SECOND} is named twice$"),
+        (f"datasets={DATASET}", r"^error: datasets='.*' is not allowed: two or more different"),
+    ]:  # fmt: skip
+        line = one_line_error(
+            run_cli([*suite_cli, bad], cwd=chain["path"], module="walkers.compare")
+        )
+        assert re.search(message, line), line
+    with pytest.raises(ConfigError, match=r"^envs= and datasets= are not allowed together"):
+        both = [*suite_cli, "envs=[pendulum,hopper]", f"datasets=[{DATASET},{SECOND}]"]
+        compare_suite(compose_cfg(both, config_name="compare"))

@@ -3,6 +3,7 @@
     python -m walkers.compare env=walker2d algos=[reinforce,td3] tracking.experiment=ab_walker2d
     python -m walkers.compare env=pendulum tracking.experiment=sizes group_by=algo.hidden_sizes
     python -m walkers.compare envs=[pendulum,inverted_pendulum] tracking.experiment=ab_tiny
+    python -m walkers.compare env=walker2d algos=[td3bc,dt] datasets=[walkers/walker2d/medium,...]
 
 The comparison itself is :mod:`walkers.analysis.comparison`, the report
 :mod:`walkers.analysis.report`.
@@ -18,14 +19,14 @@ from omegaconf import DictConfig
 from walkers import CONF_DIR
 from walkers.analysis.comparison import compare
 from walkers.analysis.report import verdict
-from walkers.analysis.suite_report import compare_suite
+from walkers.analysis.suite_report import compare_datasets, compare_suite
 from walkers.cli import exit_on_bad_overrides, group_by_as_list, or_exit
 
 
 @hydra.main(config_path=str(CONF_DIR), config_name="compare")
 def main(cfg: DictConfig) -> None:
-    if cfg.envs:
-        verdict_line, out = or_exit(compare_suite, cfg)
+    if cfg.envs or cfg.datasets:
+        verdict_line, out = or_exit(compare_suite if cfg.envs else compare_datasets, cfg)
         print(verdict_line)
         print(f"suite report: {out / 'report.md'}")
         return

@@ -185,11 +185,16 @@ def compare(cfg: DictConfig) -> tuple[Comparison, Path, str | None]:
     """Build the comparison ``cfg`` asks for, write the report; returns it, its dir, a UI link."""
     comparison, client = build_comparison(cfg)
     out = Path(cfg.out)
+    return comparison, out, publish(comparison, client, cfg, out)
+
+
+def publish(comparison: Comparison, client, cfg: DictConfig, out: Path) -> str | None:
+    """Write ``comparison``'s report to ``out`` and, with ``log_report``, log it as an MLflow
+    run; returns its UI link."""
     files = write_report(
         comparison, out, source=f"{cfg.tracking.uri}, experiment {cfg.tracking.experiment!r}"
     )
-    url = _log_report(client, cfg, comparison, files) if cfg.log_report else None
-    return comparison, out, url
+    return _log_report(client, cfg, comparison, files) if cfg.log_report else None
 
 
 def build_comparison(cfg: DictConfig):

@@ -13,6 +13,7 @@ import numpy as np
 from walkers import tracking
 from walkers.analysis import stats
 from walkers.analysis.results import AXIS_NAMES, SeedRun
+from walkers.errors import ConfigError
 from walkers.tracking import ENV_STEPS, GRADIENT_STEPS, KIND_TAG
 
 CURVE_METRIC = "eval/return_mean"
@@ -82,7 +83,7 @@ def select_runs(
     ]
     offline = [r for r in finished if x_axis(r) == GRADIENT_STEPS]
     if offline:
-        dataset = dataset or _most_common(r.data.tags.get("dataset") for r in offline)
+        dataset = _dataset(dataset, offline, env_id)
         other = Counter(r.data.tags.get("dataset") for r in offline)
         del other[dataset]
         if other:
@@ -113,6 +114,23 @@ def select_runs(
         shared = set(offline_budgets.values())
         budgets[GRADIENT_STEPS] = shared.pop() if len(shared) == 1 else offline_budgets
     return chosen, budgets, notes
+
+
+def _dataset(wanted: str | None, offline: list, env_id: str) -> str:
+    """The dataset the offline runs are compared on: ``wanted`` (``-v<N>`` may be left off when
+    one version has runs), else the one most of them learned from."""
+    found = Counter(r.data.tags.get("dataset") for r in offline)
+    if wanted is None:
+        return _most_common(found.elements())
+    if wanted in found:
+        return wanted
+    versions = [d for d in found if re.fullmatch(re.escape(wanted) + r"-v\d+", str(d))]
+    if len(versions) == 1:
+        return versions[0]
+    raise ConfigError(
+        f"dataset={wanted!r} is not allowed: no finished offline run of {env_id} learned from it; "
+        f"datasets they learned from: {', '.join(sorted(map(str, found)))}"
+    )
 
 
 def _one_budget(runs: list, given: int | None, axis: str, notes: list[str], algo: str = ""):

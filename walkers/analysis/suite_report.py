@@ -1,12 +1,18 @@
-"""``walkers.compare envs=[...]``: each env's own report, then the suite's (``<out>/../suite/``):
-normalized scores, aggregates with stratified-bootstrap CIs, P(A > B) over envs, per-env tests
-corrected by Holm's method, a performance profile and sample-efficiency curves
-(:mod:`walkers.analysis.suite` has the definitions)."""
+"""``walkers.compare envs=[...]`` and ``walkers.compare datasets=[...]``: each member's own report,
+then the suite's: normalized scores, aggregates with stratified-bootstrap CIs, P(A > B) over the
+members, per-member tests corrected by Holm's method, a performance profile and
+sample-efficiency curves (:mod:`walkers.analysis.suite` has the definitions).
+
+A suite of envs asks "is A better than B across robots?" (scores normalized on each env's
+``scores.random`` and ``scores.reference``); a suite of datasets asks it of offline algorithms
+across the datasets of one env, D4RL's table (scores normalized on the references the offline runs
+were scored on, with the data's own score beside them)."""
 
 from __future__ import annotations
 
 import itertools
 import json
+from dataclasses import dataclass
 from pathlib import Path
 
 import matplotlib
@@ -18,10 +24,25 @@ from omegaconf import DictConfig, OmegaConf  # noqa: E402
 
 from walkers import CONF_DIR  # noqa: E402
 from walkers.analysis import stats, suite  # noqa: E402
-from walkers.analysis.comparison import compare  # noqa: E402
+from walkers.analysis.comparison import build_comparison, compare, publish  # noqa: E402
+from walkers.analysis.results import AXIS_NAMES, AlgoResult, Comparison  # noqa: E402
 from walkers.errors import ConfigError  # noqa: E402
+from walkers.metrics import normalized_score  # noqa: E402
+from walkers.tracking.names import ENV_STEPS, GRADIENT_STEPS  # noqa: E402
 
-CORRECTION = "Holm's step-down method over every pair on every env"
+
+@dataclass(frozen=True)
+class Task:
+    """One member of a suite (an env, or a dataset of one env) and the two returns its scores
+    are normalized between; ``own``: the data's own normalized score (datasets)."""
+
+    name: str
+    random: float
+    reference: float
+    own: float | None = None
+
+    def normalize(self, x) -> np.ndarray:
+        return normalized_score(np.asarray(x, dtype=float), self.random, self.reference)
 
 
 def env_config(name: str) -> DictConfig:
@@ -43,128 +64,284 @@ def compare_suite(cfg: DictConfig) -> tuple[str, Path]:
     """Each env's comparison and report, then the suite's report; returns its verdict and dir."""
     if len(cfg.envs) < 2:
         raise ConfigError(f"envs={list(cfg.envs)} is not allowed: two or more conf/env names")
+    if cfg.datasets:
+        raise ConfigError("envs= and datasets= are not allowed together: a suite is of one kind")
     envs = {name: env_config(name) for name in cfg.envs}
-    comparisons = {}
+    comparisons, tasks = {}, {}
     for name, env in envs.items():
         one = cfg.copy()
         one.env = env
         one.out = str(Path(cfg.out).parent / env.id)
         comparisons[name] = compare(one)[0]
+        tasks[name] = Task(name, env.scores.random, env.scores.reference)
     out = Path(cfg.out).parent / "suite"
-    return write_suite(comparisons, envs, cfg, out), out
+    return write_suite(comparisons, tasks, cfg, out, kind="env"), out
 
 
-def _normalized(comparisons, envs) -> tuple[dict, dict]:
-    """arm -> env -> normalized seed scores, and arm -> env -> normalized eval curves."""
-    scores, curves = {}, {}
-    arms = [r.algo for r in next(iter(comparisons.values())).algos]
+def compare_datasets(cfg: DictConfig) -> tuple[str, Path]:
+    """Each dataset's comparison and report (``<out>/<dataset>/``), then the suite's over the
+    offline arms (``<out>/datasets/``); returns its verdict and dir."""
+    names = list(cfg.datasets) if OmegaConf.is_list(cfg.datasets) else None
+    if names is None or len(names) < 2 or len(set(names)) < len(names):
+        shown = names if names is not None else repr(cfg.datasets)
+        raise ConfigError(
+            f"datasets={shown} is not allowed: two or more different datasets of "
+            f"env={cfg.env.id}, as a list: [a,b]"
+        )
+    built = {}
+    for name in names:
+        one = cfg.copy()
+        one.dataset = name
+        one.datasets = []
+        comparison, client = build_comparison(one)
+        offline = [r for r in comparison.algos if r.x_axis == GRADIENT_STEPS]
+        if not offline:
+            raise ConfigError(
+                f"datasets: {name!r} has no finished offline runs of {cfg.env.id} in experiment "
+                f"{cfg.tracking.experiment!r}"
+            )
+        dataset = offline[0].dataset  # the name as recorded: with its version
+        if dataset in built:
+            raise ConfigError(f"datasets={names} is not allowed: {dataset} is named twice")
+        built[dataset] = (comparison, client, one, _dataset_task(dataset, offline))
+    for dataset, (comparison, client, one, _) in built.items():  # every dataset was found
+        publish(comparison, client, one, Path(cfg.out) / dataset.replace("/", "_"))
+    comparisons = {dataset: comparison for dataset, (comparison, *_) in built.items()}
+    tasks = {dataset: task for dataset, (*_, task) in built.items()}
+    out = Path(cfg.out) / "datasets"
+    return write_suite(comparisons, tasks, cfg, out, kind="dataset"), out
+
+
+def _dataset_task(name: str, offline: list[AlgoResult]) -> Task:
+    """A dataset as a suite member: the references its offline runs were scored on."""
+    refs = offline[0].runs[0].references
+    if refs is None or refs[0] == refs[1]:
+        raise ConfigError(
+            f"datasets: {name!r}'s runs have no reference returns to normalize on (set "
+            "scores.random and scores.expert in conf/env, or record the dataset's references)"
+        )
+    first = offline[0]
+    return Task(name, refs[0], refs[1], own=first.normalized(first.runs[0].behaviour_return))
+
+
+def _arms_of(comparison: Comparison, kind: str) -> list[AlgoResult]:
+    """The arms a suite aggregates: every arm across envs, the offline ones across datasets."""
+    return [r for r in comparison.algos if kind == "env" or r.x_axis == GRADIENT_STEPS]
+
+
+def _normalized(comparisons, tasks, kind: str) -> tuple[dict, dict, dict]:
+    """arm -> task -> normalized seed scores, arm -> task -> normalized eval curves, and
+    arm -> task -> its AlgoResult, for the arms that ran on every task."""
+    scores, curves, results = {}, {}, {}
     for name, comparison in comparisons.items():
-        random, reference = envs[name].scores.random, envs[name].scores.reference
-        norm = lambda x, lo=random, hi=reference: 100 * (np.asarray(x) - lo) / (hi - lo)  # noqa
-        by_arm = {r.algo: r for r in comparison.algos}
-        arms = [a for a in arms if a in by_arm]
-        for arm in arms:
-            scores.setdefault(arm, {})[name] = norm(by_arm[arm].scores)
-            curves.setdefault(arm, {})[name] = [
-                (r.steps, norm(r.returns)) for r in by_arm[arm].runs
+        task = tasks[name]
+        for r in _arms_of(comparison, kind):
+            scores.setdefault(r.algo, {})[name] = task.normalize(r.scores)
+            curves.setdefault(r.algo, {})[name] = [
+                (run.steps, task.normalize(run.returns)) for run in r.runs
             ]
-    keep = [a for a in arms if all(name in scores.get(a, {}) for name in comparisons)]
-    return {a: scores[a] for a in keep}, {a: curves[a] for a in keep}
+            results.setdefault(r.algo, {})[name] = r
+    keep = [a for a in scores if len(scores[a]) == len(comparisons)]
+    return (
+        {a: scores[a] for a in keep},
+        {a: curves[a] for a in keep},
+        {a: results[a] for a in keep},
+    )
 
 
-def write_suite(comparisons, envs, cfg: DictConfig, out: Path) -> str:
+def _ci(point: float, low: float, high: float) -> str:
+    return f"{point:.1f} [{low:.1f}, {high:.1f}]"
+
+
+def write_suite(comparisons, tasks: dict[str, Task], cfg: DictConfig, out: Path, kind: str) -> str:
     out.mkdir(parents=True, exist_ok=True)
     boot = {
         "confidence": cfg.confidence,
         "n_resamples": min(cfg.n_resamples, 2000),
         "seed": cfg.seed,
     }
-    scores, curves = _normalized(comparisons, envs)
+    scores, curves, results = _normalized(comparisons, tasks, kind)
     if len(scores) < 1:
-        raise ConfigError(f"no arm ran on every env of {list(envs)}: nothing to aggregate")
-    aggregates = {arm: suite.aggregate_cis(per_env, **boot) for arm, per_env in scores.items()}
+        raise ConfigError(f"no arm ran on every {kind} of {list(tasks)}: nothing to aggregate")
+    correction = f"Holm's step-down method over every pair on every {kind}"
+    aggregates = {arm: suite.aggregate_cis(per_task, **boot) for arm, per_task in scores.items()}
+    per_task = {
+        arm: {t: suite.aggregate_cis({t: x}, **boot)["IQM"] for t, x in by_task.items()}
+        for arm, by_task in scores.items()
+    }
     pairs = list(itertools.combinations(scores, 2))
     raw_p = {
-        f"{a} vs {b} on {env}": stats.mann_whitney_p(scores[a][env], scores[b][env])
+        f"{a} vs {b} on {t}": stats.mann_whitney_p(scores[a][t], scores[b][t])
         for a, b in pairs
-        for env in envs
+        for t in tasks
     }
     adjusted = suite.holm(raw_p)
     alpha = 1 - cfg.confidence
     improvement = {
         f"{a} vs {b}": suite.average_improvement(scores[a], scores[b], **boot) for a, b in pairs
     }
-
+    what = (
+        "per env (`conf/env/*.yaml` scores)"
+        if kind == "env"
+        else f"on the references the offline runs of {cfg.env.id} were scored on"
+    )
     lines = [
-        f"# Suite: {', '.join(envs)}",
+        f"# Suite: {', '.join(tasks)}",
         "",
-        "Normalized score = 100 x (score - random) / (reference - random), per env "
-        f"(`conf/env/*.yaml` scores); score: `{cfg.score}`. Aggregates over (env, seed) follow "
-        "rliable (Agarwal et al. 2021); CIs are stratified bootstraps (seeds resampled within "
-        f"each env), {cfg.confidence:.0%}.",
+        f"Normalized score = 100 x (score - random) / (reference - random), {what}; score: "
+        f"`{cfg.score}`. Aggregates over ({kind}, seed) follow rliable (Agarwal et al. 2021); "
+        f"CIs are stratified bootstraps (seeds resampled within each {kind}), "
+        f"{cfg.confidence:.0%}.",
         "",
-        "| env | random | reference |",
-        "|---|---|---|",
-        *[f"| {name} | {e.scores.random:g} | {e.scores.reference:g} |" for name, e in envs.items()],
+        *_budget_lines(results),
+        f"| {kind} | random | reference |" + (" the data's own |" if kind == "dataset" else ""),
+        "|---|---|---|" + ("---|" if kind == "dataset" else ""),
+    ]
+    for t in tasks.values():
+        own = f" {t.own:.1f} |" if kind == "dataset" and t.own is not None else ""
+        lines.append(f"| {t.name} | {t.random:g} | {t.reference:g} |" + own)
+    lines += [
         "",
         "## Aggregates (normalized)",
         "",
-        "| arm | " + " | ".join(suite.AGGREGATES) + " | runs |",
-        "|---|" + "---|" * (len(suite.AGGREGATES) + 1),
+        "| arm | " + " | ".join(suite.AGGREGATES) + " | runs | CPU-hours |",
+        "|---|" + "---|" * (len(suite.AGGREGATES) + 2),
     ]
     for arm, agg in aggregates.items():
-        cells = [f"{p:.1f} [{lo:.1f}, {hi:.1f}]" for p, lo, hi in agg.values()]
+        cells = [_ci(*v) for v in agg.values()]
         runs = sum(len(x) for x in scores[arm].values())
-        lines.append(f"| {arm} | " + " | ".join(cells) + f" | {runs} |")
-    lines += ["", "## Per env (normalized IQM)", "", "| arm | " + " | ".join(envs) + " |",
-              "|---|" + "---|" * len(envs)]  # fmt: skip
+        lines.append(f"| {arm} | " + " | ".join(cells) + f" | {runs} | {_cpu(results[arm])} |")
+    lines += [
+        "",
+        f"## Per {kind} (normalized IQM [CI])",
+        "",
+        "| arm | " + " | ".join(tasks) + " |",
+        "|---|" + "---|" * len(tasks),
+    ]
     for arm in scores:
-        lines.append(
-            f"| {arm} | " + " | ".join(f"{suite.iqm(scores[arm][e]):.1f}" for e in envs) + " |"
-        )
-    lines += ["", "## Pairs", "", f"P(A > B) averaged over envs; per-env Mann-Whitney p, "
-              f"corrected for {len(raw_p)} tests by {CORRECTION} (a difference needs adjusted p "
-              f"< {alpha:.2g}).", "",
-              "| pair | P(A > B) over envs | env | p | Holm-adjusted p | verdict |",
-              "|---|---|---|---|---|---|"]  # fmt: skip
+        lines.append(f"| {arm} | " + " | ".join(_ci(*per_task[arm][t]) for t in tasks) + " |")
+    if kind == "dataset":
+        own = [f"{t.own:.1f}" if t.own is not None else "-" for t in tasks.values()]
+        lines.append("| the data's own | " + " | ".join(own) + " |")
+    lines += _per_target_lines(results, tasks)
+    lines += [
+        "",
+        "## Pairs",
+        "",
+        f"P(A > B) averaged over {kind}s; per-{kind} Mann-Whitney p, corrected for "
+        f"{len(raw_p)} tests by {correction} (a difference needs adjusted p < {alpha:.2g}).",
+        "",
+        f"| pair | P(A > B) over {kind}s | {kind} | p | Holm-adjusted p | verdict |",
+        "|---|---|---|---|---|---|",
+    ]
     for a, b in pairs:
         p, lo, hi = improvement[f"{a} vs {b}"]
-        for env in envs:
-            key = f"{a} vs {b} on {env}"
-            diff = np.mean(scores[a][env]) - np.mean(scores[b][env])
+        for t in tasks:
+            key = f"{a} vs {b} on {t}"
+            diff = np.mean(scores[a][t]) - np.mean(scores[b][t])
             verdict = (
                 f"{a if diff > 0 else b} better"
                 if adjusted[key] < alpha
                 else "no reliable difference"
             )
-            lines.append(f"| {a} vs {b} | {p:.2f} [{lo:.2f}, {hi:.2f}] | {env} | {raw_p[key]:.4f} "
-                         f"| {adjusted[key]:.4f} | {verdict} |")  # fmt: skip
-    lines += ["", "![performance profile](performance_profile.png)",
-              "![sample efficiency](sample_efficiency.png)", ""]  # fmt: skip
+            lines.append(
+                f"| {a} vs {b} | {p:.2f} [{lo:.2f}, {hi:.2f}] | {t} | {raw_p[key]:.4f} "
+                f"| {adjusted[key]:.4f} | {verdict} |"
+            )
+    lines += [
+        "",
+        "![performance profile](performance_profile.png)",
+        "![sample efficiency](sample_efficiency.png)",
+        "",
+    ]
     (out / "report.md").write_text("\n".join(lines))
-    _plots(scores, curves, out)
+    _plots(scores, curves, out, AXIS_NAMES[ENV_STEPS if kind == "env" else GRADIENT_STEPS])
     summary = {
-        "envs": {
-            n: {"random": e.scores.random, "reference": e.scores.reference} for n, e in envs.items()
+        f"{kind}s": {
+            t.name: {"random": t.random, "reference": t.reference}
+            | ({"own": t.own} if kind == "dataset" else {})
+            for t in tasks.values()
         },
         "aggregates": aggregates,
+        f"per_{kind}": per_task,
         "probability_of_improvement": improvement,
         "p_values": raw_p,
         "holm_adjusted": adjusted,
-        "correction": CORRECTION,
+        "correction": correction,
+        "budgets": {arm: _budget(by_task) for arm, by_task in results.items()},
+        "cpu_hours": {arm: _cpu_hours(by_task) for arm, by_task in results.items()},
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     best = max(aggregates, key=lambda arm: aggregates[arm]["IQM"][0])
     top = aggregates[best]["IQM"][0]
-    return f"suite of {len(envs)} envs: the highest normalized IQM is {best}'s ({top:.1f})"
+    return f"suite of {len(tasks)} {kind}s: the highest normalized IQM is {best}'s ({top:.1f})"
 
 
-def _plots(scores, curves, out: Path) -> None:
+def _budget(by_task: dict[str, AlgoResult]) -> int | None:
+    """An arm's budget when it is the same on every member, else None."""
+    budgets = {r.budget for r in by_task.values()}
+    return budgets.pop() if len(budgets) == 1 else None
+
+
+def _budget_lines(results: dict[str, dict[str, AlgoResult]]) -> list[str]:
+    """Each arm's budget, on its x-axis (offline arms are compared each at its own)."""
+    parts = []
+    for arm, by_task in results.items():
+        budget, axis = _budget(by_task), next(iter(by_task.values())).x_axis
+        shown = f"{budget:,}" if budget is not None else "varies"
+        parts.append(f"{arm} {shown} {AXIS_NAMES[axis]}")
+    return [f"Budgets: {'; '.join(parts)}.", ""]
+
+
+def _cpu_hours(by_task: dict[str, AlgoResult]) -> tuple[float, int, int]:
+    """An arm's CPU-hours over the suite: (hours, runs that counted them, runs)."""
+    counted = [r.cpu_hours for r in by_task.values()]
+    runs = sum(len(r.runs) for r in by_task.values())
+    return sum(h for h, _ in counted), sum(n for _, n in counted), runs
+
+
+def _cpu(by_task: dict[str, AlgoResult]) -> str:
+    hours, counted, runs = _cpu_hours(by_task)
+    return f"{hours:.2f}" + (f" ({counted} of {runs} runs counted)" if counted < runs else "")
+
+
+def _per_target_lines(results, tasks: dict[str, Task]) -> list[str]:
+    """Return-conditioned arms (DT): the normalized IQM [CI] at each target return, per task."""
+    lines = []
+    for arm, by_task in results.items():
+        targets = sorted(
+            {t for r in by_task.values() for t in r.per_target}, key=float, reverse=True
+        )
+        if len(targets) < 2:
+            continue
+        lines += [
+            "",
+            f"## {arm} per target return (normalized IQM [CI])",
+            "",
+            "| target | " + " | ".join(tasks) + " |",
+            "|---|" + "---|" * len(tasks),
+        ]
+        for target in targets:
+            cells = []
+            for name, task in tasks.items():
+                found = by_task[name].per_target.get(target)
+                if found is None:
+                    cells.append("-")
+                    continue
+                point, low, high = (float(task.normalize(v)) for v in found)
+                cells.append(_ci(point, min(low, high), max(low, high)))  # the map may reverse
+            lines.append(f"| {float(target):g} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def _plots(scores, curves, out: Path, axis: str) -> None:
     taus = np.linspace(-10, 150, 161)
     fig, ax = plt.subplots(figsize=(6, 4))
-    for arm, per_env in scores.items():
+    for arm, per_task in scores.items():
         ax.plot(
-            taus, suite.performance_profile(np.concatenate(list(per_env.values())), taus), label=arm
+            taus,
+            suite.performance_profile(np.concatenate(list(per_task.values())), taus),
+            label=arm,
         )
     ax.set(
         xlabel="normalized score tau", ylabel="fraction of runs > tau", title="Performance profile"
@@ -174,13 +351,13 @@ def _plots(scores, curves, out: Path) -> None:
     fig.savefig(out / "performance_profile.png", dpi=100)
     plt.close(fig)
     fig, ax = plt.subplots(figsize=(6, 4))
-    for arm, per_env in curves.items():
-        last = min(steps[-1] for runs in per_env.values() for steps, _ in runs)
+    for arm, per_task in curves.items():
+        last = min(steps[-1] for runs in per_task.values() for steps, _ in runs)
         grid = np.linspace(0, last, 50)
-        point, low, high = suite.iqm_curve(per_env, grid)
+        point, low, high = suite.iqm_curve(per_task, grid)
         ax.plot(grid, point, label=arm)
         ax.fill_between(grid, low, high, alpha=0.2)
-    ax.set(xlabel="env steps", ylabel="IQM normalized eval return", title="Sample efficiency")
+    ax.set(xlabel=axis, ylabel="IQM normalized eval return", title="Sample efficiency")
     ax.legend()
     fig.tight_layout()
     fig.savefig(out / "sample_efficiency.png", dpi=100)

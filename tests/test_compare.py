@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -12,6 +13,8 @@ from tests.conftest import TINY, all_runs, compose_cfg, new_store, one_line_erro
 from walkers.analysis.comparison import compare, compare_groups
 from walkers.analysis.report import verdict
 from walkers.analysis.results import SeedRun
+from walkers.analysis.selection import resolve_dataset
+from walkers.errors import ConfigError
 
 ALGOS = ["reinforce", "td3"]
 
@@ -185,3 +188,26 @@ def test_verdict_follows_the_evidence():
     few = run([90, 95, 100], [1, 2, 3])
     assert "no reliable difference in final return" in few
     assert "smallest possible p is 0.1" in few
+
+
+def test_a_dataset_named_without_its_version_is_found_when_one_version_has_runs():
+    """``dataset=`` of a report: the exact id, or the id without ``-v<N>`` when runs learned
+    from one version of it; several versions or none are one-line errors naming what is there."""
+
+    def offline(dataset: str):  # what select_runs reads of an MLflow run
+        tags = {"dataset": dataset, "walkers.x_axis": "gradient_steps"}
+        return SimpleNamespace(data=SimpleNamespace(tags=tags))
+
+    runs = [offline("a/medium-v0"), offline("a/medium-v0"), offline("a/expert-v0"),
+            offline("a/expert-v1")]  # fmt: skip
+    assert resolve_dataset(None, runs, "E") == "a/medium-v0"  # the most common
+    assert resolve_dataset("a/medium", runs, "E") == resolve_dataset("a/medium-v0", runs, "E") == "a/medium-v0"
+    assert resolve_dataset("a/expert-v1", runs, "E") == "a/expert-v1"
+    with pytest.raises(ConfigError, match=r"several versions of it \(a/expert-v0, a/expert-v1\)"):
+        resolve_dataset("a/expert", runs, "E")
+    with pytest.raises(
+        ConfigError,
+        match=r"^dataset='a/medum' is not allowed: no finished offline run of E learned from it; "
+        r"datasets they learned from: a/expert-v0, a/expert-v1, a/medium-v0$",
+    ):
+        resolve_dataset("a/medum", runs, "E")

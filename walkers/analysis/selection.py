@@ -83,7 +83,7 @@ def select_runs(
     ]
     offline = [r for r in finished if x_axis(r) == GRADIENT_STEPS]
     if offline:
-        dataset = _dataset(dataset, offline, env_id)
+        dataset = resolve_dataset(dataset, offline, env_id)
         other = Counter(r.data.tags.get("dataset") for r in offline)
         del other[dataset]
         if other:
@@ -116,7 +116,7 @@ def select_runs(
     return chosen, budgets, notes
 
 
-def _dataset(wanted: str | None, offline: list, env_id: str) -> str:
+def resolve_dataset(wanted: str | None, offline: list, env_id: str) -> str:
     """The dataset the offline runs are compared on: ``wanted`` (``-v<N>`` may be left off when
     one version has runs), else the one most of them learned from."""
     found = Counter(r.data.tags.get("dataset") for r in offline)
@@ -127,6 +127,11 @@ def _dataset(wanted: str | None, offline: list, env_id: str) -> str:
     versions = [d for d in found if re.fullmatch(re.escape(wanted) + r"-v\d+", str(d))]
     if len(versions) == 1:
         return versions[0]
+    if versions:
+        raise ConfigError(
+            f"dataset={wanted!r} is not allowed: runs learned from several versions of it "
+            f"({', '.join(sorted(versions))}); name one"
+        )
     raise ConfigError(
         f"dataset={wanted!r} is not allowed: no finished offline run of {env_id} learned from it; "
         f"datasets they learned from: {', '.join(sorted(map(str, found)))}"

@@ -201,7 +201,11 @@ def test_a_dataset_named_without_its_version_is_found_when_one_version_has_runs(
     runs = [offline("a/medium-v0"), offline("a/medium-v0"), offline("a/expert-v0"),
             offline("a/expert-v1")]  # fmt: skip
     assert resolve_dataset(None, runs, "E") == "a/medium-v0"  # the most common
-    assert resolve_dataset("a/medium", runs, "E") == resolve_dataset("a/medium-v0", runs, "E") == "a/medium-v0"
+    assert (
+        resolve_dataset("a/medium", runs, "E")
+        == resolve_dataset("a/medium-v0", runs, "E")
+        == "a/medium-v0"
+    )
     assert resolve_dataset("a/expert-v1", runs, "E") == "a/expert-v1"
     with pytest.raises(ConfigError, match=r"several versions of it \(a/expert-v0, a/expert-v1\)"):
         resolve_dataset("a/expert", runs, "E")

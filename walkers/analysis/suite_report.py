@@ -149,6 +149,12 @@ def _normalized(comparisons, tasks, kind: str) -> tuple[dict, dict, dict]:
     )
 
 
+def _header(first: str, columns) -> list[str]:
+    """A markdown table's first two lines."""
+    columns = [first, *columns]
+    return ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
+
+
 def _ci(point: float, low: float, high: float) -> str:
     return f"{point:.1f} [{low:.1f}, {high:.1f}]"
 
@@ -194,8 +200,7 @@ def write_suite(comparisons, tasks: dict[str, Task], cfg: DictConfig, out: Path,
         f"{cfg.confidence:.0%}.",
         "",
         *_budget_lines(results),
-        f"| {kind} | random | reference |" + (" the data's own |" if kind == "dataset" else ""),
-        "|---|---|---|" + ("---|" if kind == "dataset" else ""),
+        *_header(kind, ["random", "reference"] + (["the data's own"] if kind == "dataset" else [])),
     ]
     for t in tasks.values():
         own = f" {t.own:.1f} |" if kind == "dataset" and t.own is not None else ""
@@ -204,8 +209,7 @@ def write_suite(comparisons, tasks: dict[str, Task], cfg: DictConfig, out: Path,
         "",
         "## Aggregates (normalized)",
         "",
-        "| arm | " + " | ".join(suite.AGGREGATES) + " | runs | CPU-hours |",
-        "|---|" + "---|" * (len(suite.AGGREGATES) + 2),
+        *_header("arm", [*suite.AGGREGATES, "runs", "CPU-hours"]),
     ]
     for arm, agg in aggregates.items():
         cells = [_ci(*v) for v in agg.values()]
@@ -215,8 +219,7 @@ def write_suite(comparisons, tasks: dict[str, Task], cfg: DictConfig, out: Path,
         "",
         f"## Per {kind} (normalized IQM [CI])",
         "",
-        "| arm | " + " | ".join(tasks) + " |",
-        "|---|" + "---|" * len(tasks),
+        *_header("arm", tasks),
     ]
     for arm in scores:
         lines.append(f"| {arm} | " + " | ".join(_ci(*per_task[arm][t]) for t in tasks) + " |")
@@ -231,8 +234,7 @@ def write_suite(comparisons, tasks: dict[str, Task], cfg: DictConfig, out: Path,
         f"P(A > B) averaged over {kind}s; per-{kind} Mann-Whitney p, corrected for "
         f"{len(raw_p)} tests by {correction} (a difference needs adjusted p < {alpha:.2g}).",
         "",
-        f"| pair | P(A > B) over {kind}s | {kind} | p | Holm-adjusted p | verdict |",
-        "|---|---|---|---|---|---|",
+        *_header("pair", [f"P(A > B) over {kind}s", kind, "p", "Holm-adjusted p", "verdict"]),
     ]
     for a, b in pairs:
         p, lo, hi = improvement[f"{a} vs {b}"]
@@ -318,8 +320,7 @@ def _per_target_lines(results, tasks: dict[str, Task]) -> list[str]:
             "",
             f"## {arm} per target return (normalized IQM [CI])",
             "",
-            "| target | " + " | ".join(tasks) + " |",
-            "|---|" + "---|" * len(tasks),
+            *_header("target", tasks),
         ]
         for target in targets:
             cells = []

@@ -49,7 +49,9 @@ def train(cfg: DictConfig, overrides: list[str] | tuple = ()) -> float:
     if not cfg.resume:
         done = TrainingRun.finished_attempt(client, cfg)
         if done is not None:  # a job run again after it finished: its result, nothing trained
-            log.info("job %s already FINISHED as run %s: nothing to train", cfg.job_key, done)
+            log.info(
+                "job %s already FINISHED as run %s: nothing to train", cfg.job_key, done.info.run_id
+            )
             return done.data.metrics.get(cfg.optimized_metric, math.nan)
         # a multirun job run again (its worker died) continues its earlier attempt's run
         cfg = TrainingRun.continue_earlier_attempt(client, cfg)

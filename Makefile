@@ -53,7 +53,10 @@ plan: $(STAMP)  ## how many seeds a study needs, from pilot runs (ARGS="env=pend
 	$(PY) -m walkers.plan $(ARGS)
 
 test: $(STAMP)  ## run the test suite (real tiny trainings, sweeps, offline RL, reports; one worker per core)
-	$(PY) -m pytest -q -n auto --dist loadscope --durations=10 -m "not cluster and not browser and not faults" $(ARGS)
+	$(PY) -m pytest -q -n auto --dist loadscope --durations=10 -m "not cluster and not browser and not faults and not slow" $(ARGS)
+
+test-slow: $(STAMP)  ## the long end-to-end tests (marker `slow`): algorithms learning a task, SB3 twins trained and resumed, sweeps and runs resumed, the offline chain on a learned policy (CI runs it after `make test`)
+	$(PY) -m pytest -q -n auto --dist loadscope --durations=10 -m slow $(ARGS)
 
 test-faults: $(STAMP)  ## the fault tests: kill -9 of a run and of a study's driver, SIGTERM to a process group, a tracking server that dies mid-run, a resume that cannot reopen its run (a few minutes; CI runs it after `make test`)
 	$(PY) -m pytest -q -n auto --dist loadscope --durations=5 -m faults $(ARGS)
@@ -109,4 +112,4 @@ clean:  ## remove run outputs (mlflow.db, mlartifacts/, outputs/, multirun/, .wa
 	rm -rf mlflow.db mlruns mlartifacts outputs multirun .walkers reports .pytest_cache .ruff_cache
 	find . -name __pycache__ -type d -prune -not -path './$(VENV)/*' -exec rm -rf {} +
 
-.PHONY: help install train ab ab-all study offline compare plan dashboard bench-sequential ui-check test test-cluster chaos stack bench bench-throughput bench-dt bench-learning bench-scale menus lint ui clean
+.PHONY: help install train ab ab-all study offline compare plan dashboard bench-sequential ui-check test test-slow test-faults test-cluster chaos stack bench bench-throughput bench-dt bench-learning bench-scale menus lint ui clean

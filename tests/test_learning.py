@@ -3,9 +3,12 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from tests.conftest import all_runs, compose_cfg
 from walkers.train import train
+
+pytestmark = pytest.mark.slow  # `make test-slow`, beside `make test` in CI
 
 
 def learning_run(store, overrides: list[str]) -> dict[str, list[float]]:

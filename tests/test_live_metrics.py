@@ -8,6 +8,8 @@ import signal
 import time
 from collections import Counter
 
+import pytest
+
 from tests.conftest import TINY, run_cli, spawn_cli
 
 # Evaluations every 200 steps, checkpoints only every 1,000: the UI must move between them.
@@ -33,6 +35,7 @@ def _training_run(client):
     return run
 
 
+@pytest.mark.slow  # `make test-slow`
 def test_metrics_arrive_at_each_evaluation_and_a_crashed_run_resumes_without_logging_twice(store):
     client = store["client"]
     proc = spawn_cli([*LIVE, *store["overrides"]], cwd=store["path"])

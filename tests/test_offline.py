@@ -37,6 +37,8 @@ from walkers.training.envs import make_env
 from walkers.training.evaluation import offline_references
 from walkers.training.validate import validate
 
+pytestmark = pytest.mark.slow  # `make test-slow`, beside `make test` in CI
+
 EXPERT = "walkers/pendulum/td3-v0"  # greedy TD3 episodes: returns from about -1500 to 0
 MIXED = "walkers/pendulum/mixed-v0"  # 3 random-policy episodes, then 3 noisy TD3 ones
 EPISODES = 40

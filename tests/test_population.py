@@ -196,6 +196,7 @@ def test_bad_population(overrides, expected):
         validate(compose_cfg(overrides))
 
 
+@pytest.mark.slow  # `make test-slow`
 def test_a_population_job_run_again_continues_its_member_runs(store):
     """A cluster runs a job again when its worker died (kill -9): a population's job finds the
     K runs of its first attempt by its job key and continues them together, starting none."""

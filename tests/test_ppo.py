@@ -315,6 +315,7 @@ def test_compare_takes_ppo_like_the_others(ppo_run, tmp_path):
     assert "on Pendulum-v1" in (out / "report.md").read_text()
 
 
+@pytest.mark.slow  # `make test-slow`
 def test_resume_continues_the_rollout_and_the_learning_rate_schedule(store):
     args = ["algo=ppo", "env=pendulum", "total_steps=400", "eval_every=200", "eval_episodes=1"]
     args += ["checkpoint_every=200", "log_every=100", "progress=false", "algo.n_steps=96"]
@@ -341,6 +342,7 @@ def test_resume_continues_the_rollout_and_the_learning_rate_schedule(store):
 
 
 # --- learning ---------------------------------------------------------------------------------
+@pytest.mark.slow  # `make test-slow`
 def test_ppo_learns_inverted_pendulum(store):
     # Random actions balance the pole for ~6 steps (return ~6); the maximum is 1000. The reference
     # defaults (2048-step rollouts, normalization on), 30k steps, annealed over them. Measured

@@ -265,6 +265,7 @@ SAC_METRICS = {
 }
 
 
+@pytest.mark.slow  # `make test-slow`
 def test_a_resume_through_the_cli_continues_the_run(store):
     first = run_cli([*SAC_TINY, "env=pendulum", *TINY, *store["overrides"]], cwd=store["path"])
     assert first.returncode == 0, first.stderr[-2000:]
@@ -329,6 +330,7 @@ def pendulum_sac(tmp_path_factory, _empty_store_file) -> dict:
     return {**store, "run": run}
 
 
+@pytest.mark.slow  # `make test-slow`
 def test_sac_learns_pendulum(pendulum_sac):
     """A random policy scores about -1200 on Pendulum-v1; a swing-up policy about -150.
 
@@ -347,6 +349,7 @@ def test_sac_learns_pendulum(pendulum_sac):
     assert alpha[-1] < alpha[0]  # the temperature fell as the policy learned to commit
 
 
+@pytest.mark.slow  # `make test-slow`
 def test_evaluate_and_collect_take_a_sac_policy(pendulum_sac, tmp_path, monkeypatch):
     store, run = pendulum_sac, pendulum_sac["run"]
     best = max(

@@ -78,6 +78,7 @@ def runs_of(store, algo, impl):
 
 
 @pytest.mark.parametrize("algo", list(QUICK))
+@pytest.mark.slow  # `make test-slow`
 def test_an_sb3_twin_is_logged_and_summarized_as_a_walkers_run(twins, algo):
     run = runs_of(twins, algo, "sb3")[0]
     assert run.info.status == "FINISHED"
@@ -93,6 +94,7 @@ def test_an_sb3_twin_is_logged_and_summarized_as_a_walkers_run(twins, algo):
     assert {"checkpoints/best.pt", "checkpoints/last.pt"} <= artifacts
 
 
+@pytest.mark.slow  # `make test-slow`
 def test_an_sb3_run_is_replayed_by_walkers_evaluate(twins, tmp_path):
     """PPO's twin acts through its VecNormalize statistics, restored without an env."""
     run = runs_of(twins, "ppo", "sb3")[0]
@@ -108,6 +110,7 @@ def test_an_sb3_run_is_replayed_by_walkers_evaluate(twins, tmp_path):
     assert len(result["returns"]) == 2
 
 
+@pytest.mark.slow  # `make test-slow`
 def test_the_same_seed_trains_the_same_sb3_run(twins, tmp_path):
     store = new_store(tmp_path)
     train(compose_cfg(tiny("td3", store, "impl=sb3", "seed=0")))
@@ -121,6 +124,7 @@ def test_the_same_seed_trains_the_same_sb3_run(twins, tmp_path):
     assert curve(store) == curve(twins)
 
 
+@pytest.mark.slow  # `make test-slow`
 def test_resume_continues_an_sb3_run(tmp_path):
     """Killed at its budget and resumed with a larger one: the same run, SB3's step count and
     replay buffer carried over, no step logged twice; SB3 wrote nothing to the temp dir."""
@@ -285,6 +289,7 @@ def test_impl_sb3_without_sb3_installed_says_how_to_install_it(tmp_path):
 
 
 # --- the report -----------------------------------------------------------------------------------
+@pytest.mark.slow  # `make test-slow`
 def test_group_by_impl_pairs_each_algorithm_with_its_twin(twins, tmp_path):
     cfg = compose_cfg(
         [

@@ -24,6 +24,8 @@ from walkers.seeding import (
 from walkers.training import checkpoints
 from walkers.training.envs import make_env
 
+pytestmark = pytest.mark.slow  # `make test-slow`, beside `make test` in CI
+
 SEEDS = range(5)
 EPISODES = 30
 

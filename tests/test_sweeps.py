@@ -43,6 +43,7 @@ def sweep(store, *args):
     return optuna.load_study(study_name="pendulum_tiny", storage=storage)
 
 
+@pytest.mark.slow  # `make test-slow`
 def test_study_runs_resumes_and_logs_every_trial(store):
     study = sweep(store, "hydra.sweeper.n_trials=3")
     assert len(study.trials) == 3

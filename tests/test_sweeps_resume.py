@@ -14,6 +14,8 @@ from walkers.errors import ConfigError
 from walkers.tuning.objective import check_objective
 from walkers.tuning.studies import redacted
 
+pytestmark = pytest.mark.slow  # `make test-slow`, beside `make test` in CI
+
 STUDY = "pendulum_tiny"
 #: A trial of the pendulum study at its smallest: two evaluations, no pruning (before warm-up).
 FAST_TRIAL = [

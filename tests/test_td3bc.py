@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import itertools
 import json
-import re
 
 import numpy as np
 import pytest
@@ -27,7 +26,7 @@ from walkers.agents.factory import defaults_for
 from walkers.agents.td3 import TD3
 from walkers.agents.td3bc import TD3BC
 from walkers.analysis.comparison import compare
-from walkers.analysis.suite_report import compare_suite
+from walkers.analysis.suite_report import compare_datasets, compare_suite
 from walkers.data.datasets import OfflineData
 from walkers.data.episodes import Episode
 from walkers.data.replay import Batch
@@ -394,10 +393,8 @@ def test_a_suite_of_datasets_aggregates_the_offline_arms_across_them(chain, tmp_
             train(compose_cfg([*TD3BC_RUN, "total_steps=100", "eval_every=50", *common]))
             train(compose_cfg([*DT_RUN, "algo.target_returns=[-150,-900]", *common]))
     out = tmp_path / "reports"
-    suite_cli = [
-        "env=pendulum", "algos=[td3bc,dt]", "n_resamples=200", f"out={out}", *experiment,
-        *chain["overrides"],
-    ]  # fmt: skip
+    args = ["env=pendulum", "algos=[td3bc,dt]", "n_resamples=200", *experiment, *chain["overrides"]]
+    suite_cli = [*args, f"out={out}"]
     result = run_cli(
         [*suite_cli, f"datasets=[{DATASET},{SECOND.removesuffix('-v0')}]"],
         cwd=chain["path"],
@@ -422,19 +419,27 @@ def test_a_suite_of_datasets_aggregates_the_offline_arms_across_them(chain, tmp_
     for name in ("performance_profile.png", "sample_efficiency.png"):
         assert (out / "datasets" / name).stat().st_size > 1000
 
-    for bad, message in [
-        (f"datasets=[{DATASET},walkers/pendulum/tiny-td3-onyl]",
-         r"^error: dataset='walkers/pendulum/tiny-td3-onyl' is not allowed: no finished offline "
-         rf"run of Pendulum-v1 learned from it; datasets they learned from: {SECOND}, {DATASET}$"),
-        (f"datasets=[{DATASET}]", r"^error: datasets=\[.*\] is not allowed: two or more different"),
-        (f"datasets=[{SECOND},{SECOND.removesuffix('-v0')}]",
-         rf"^error: datasets=\[.*\] is not allowed: {SECOND} is named twice$"),
-        (f"datasets={DATASET}", r"^error: datasets='.*' is not allowed: two or more different"),
-    ]:  # fmt: skip
-        line = one_line_error(
-            run_cli([*suite_cli, bad], cwd=chain["path"], module="walkers.compare")
+    typo = [*args, f"out={tmp_path / 'typo'}"]
+    line = one_line_error(
+        run_cli(
+            [*typo, f"datasets=[{DATASET},walkers/pendulum/tiny-td3-onyl]"],
+            cwd=chain["path"],
+            module="walkers.compare",
         )
-        assert re.search(message, line), line
+    )
+    assert line == (
+        "error: dataset='walkers/pendulum/tiny-td3-onyl' is not allowed: no finished offline run "
+        f"of Pendulum-v1 learned from it; datasets they learned from: {SECOND}, {DATASET}"
+    )
+    assert not (tmp_path / "typo").exists()  # every dataset is found before anything is written
+    for bad, message in [
+        (f"datasets=[{DATASET}]", r"^datasets=\[.*\] is not allowed: two or more different"),
+        (f"datasets=[{SECOND},{SECOND.removesuffix('-v0')}]",
+         rf"^datasets=\[.*\] is not allowed: {SECOND} is named twice$"),
+        (f"datasets={DATASET}", r"^datasets='.*' is not allowed: two or more different"),
+    ]:  # fmt: skip
+        with pytest.raises(ConfigError, match=message):
+            compare_datasets(compose_cfg([*typo, bad], config_name="compare"))
     with pytest.raises(ConfigError, match=r"^envs= and datasets= are not allowed together"):
         both = [*suite_cli, "envs=[pendulum,hopper]", f"datasets=[{DATASET},{SECOND}]"]
         compare_suite(compose_cfg(both, config_name="compare"))

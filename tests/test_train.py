@@ -79,6 +79,7 @@ def test_steps_to_threshold_is_infinite_when_never_reached(store):
     assert reached.data.metrics["final/steps_to_threshold"] == 300
 
 
+@pytest.mark.slow  # `make test-slow`
 def test_resume_continues_the_same_run_without_duplicate_steps(store):
     base = ["env=pendulum", "seed=3", "algo.learning_starts=200", *TINY[1:], *store["overrides"]]
     first = run_cli(["total_steps=600", *base], cwd=store["path"])

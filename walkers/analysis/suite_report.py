@@ -114,13 +114,13 @@ def compare_datasets(cfg: DictConfig) -> tuple[str, Path]:
 
 def _dataset_task(name: str, offline: list[AlgoResult]) -> Task:
     """A dataset as a suite member: the references its offline runs were scored on."""
-    refs = offline[0].runs[0].references
+    first = offline[0]
+    refs = first.runs[0].references
     if refs is None or refs[0] == refs[1]:
         raise ConfigError(
             f"datasets: {name!r}'s runs have no reference returns to normalize on (set "
             "scores.random and scores.expert in conf/env, or record the dataset's references)"
         )
-    first = offline[0]
     return Task(name, refs[0], refs[1], own=first.normalized(first.runs[0].behaviour_return))
 
 

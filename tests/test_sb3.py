@@ -12,6 +12,7 @@ import math
 
 import numpy as np
 import pytest
+import torch
 from omegaconf import OmegaConf
 
 from tests.conftest import (
@@ -149,6 +150,31 @@ def test_resume_continues_an_sb3_run(tmp_path):
     assert "walkers.buffer_refill" not in run.data.tags  # the local copy had the buffer
     alpha = store["client"].get_metric_history(run_id, "train/alpha")
     assert max(m.step for m in alpha) == 900
+
+
+@pytest.mark.slow  # `make test-slow`
+def test_resume_continues_an_sb3_ppo_run_with_its_normalization(tmp_path):
+    """PPO's twin normalizes observations and rewards (VecNormalize): a resume carries on its
+    running statistics from the checkpoint, whose pickled state SB3 writes without ``returns``."""
+    store = new_store(tmp_path)
+    train(compose_cfg(tiny("ppo", store, "impl=sb3")))
+    run_id = all_runs(store["client"])[0].info.run_id
+
+    def observations_counted() -> float:
+        folder = tmp_path / f"ckpt{len(list(tmp_path.glob('ckpt*')))}"
+        folder.mkdir()
+        path = store["client"].download_artifacts(run_id, "checkpoints/last.pt", str(folder))
+        return torch.load(path, weights_only=False)["agent"]["normalization"]["obs_rms"].count
+
+    counted = observations_counted()
+    result = run_cli([f"resume={run_id}", "total_steps=900", *store["overrides"]], cwd=tmp_path)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert f"resuming run {run_id} at step 600" in result.stdout + result.stderr
+    run = store["client"].get_run(run_id)
+    assert run.info.status == "FINISHED" and len(all_runs(store["client"])) == 1
+    history = store["client"].get_metric_history(run_id, "eval/return_mean")
+    assert [m.step for m in history] == [300, 600, 900]
+    assert observations_counted() >= counted + 300  # the statistics went on, not from zero
 
 
 # --- the mapping, read back from what SB3 built -------------------------------------------------

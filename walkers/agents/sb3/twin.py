@@ -209,7 +209,9 @@ class SB3Twin(Agent):
         self._log_in_memory()
         self.normalization = state["normalization"]
         if self.vec_normalize is not None and self.normalization is not None:
-            for key in ("obs_rms", "ret_rms", "returns"):
+            # VecNormalize's pickled state leaves out ``returns`` (the running discounted
+            # return): SB3 resets the env on resume (force_reset), which zeroes it anyway
+            for key in ("obs_rms", "ret_rms"):
                 setattr(self.vec_normalize, key, self.normalization[key])
         if state["action_noise"] is not None:
             self.model.action_noise = state["action_noise"]

@@ -8,6 +8,9 @@ from __future__ import annotations
 
 import itertools
 import json
+import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -272,6 +275,62 @@ def test_a_td3bc_run_resumes_where_it_stopped(chain):
     assert steps == sorted(set(steps)) and steps[-1] == more
     assert client.get_run(run_id).info.status == "FINISHED"
     assert len([r for r in all_runs(client) if r.data.tags.get("algo") == "td3bc"]) == 1
+
+
+#: ``python -c`` this, then walkers.train's arguments: a real SIGINT sent by the process to
+#: itself right after its Nth Adam step (argv[1]), so the signal lands inside an update.
+SIGNAL_AFTER_AN_ADAM_STEP = """
+import os, runpy, signal, sys
+import torch
+calls, at = 0, int(sys.argv[1])
+adam_step = torch.optim.Adam.step
+def step(self, *args, **kwargs):
+    global calls
+    out = adam_step(self, *args, **kwargs)
+    calls += 1
+    if calls == at:
+        os.kill(os.getpid(), signal.SIGINT)
+    return out
+torch.optim.Adam.step = step
+sys.argv = ["walkers.train", *sys.argv[2:]]
+runpy.run_module("walkers.train", run_name="__main__")
+"""
+
+
+@pytest.mark.faults  # `make test-faults`: a signal, sent by the run to itself
+def test_a_run_stopped_inside_an_update_resumes_into_the_uninterrupted_run(chain, tmp_path):
+    """SIGINT between the critic's and the actor's step of update 100 (TD3+BC's 149th Adam step:
+    99 critic and 49 actor steps before it): the stop waits for the update to end, the last
+    checkpoint holds whole updates (step 100), and the resumed run logs, bit for bit, what the
+    uninterrupted run of the same seed logs."""
+    store = new_store(tmp_path)
+    args = [*TD3BC_RUN, "seed=3", "torch_threads=1", *store["overrides"]]
+    env = {"MINARI_DATASETS_PATH": str(chain["path"] / "minari")}
+    whole = run_cli([*args, "tracking.experiment=whole"], cwd=tmp_path, env_overrides=env)
+    assert whole.returncode == 0, whole.stderr[-2000:]
+    cut = subprocess.run(
+        [sys.executable, "-c", SIGNAL_AFTER_AN_ADAM_STEP, "149", *args],
+        cwd=tmp_path,
+        env={**os.environ, **env},
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert cut.returncode == 130, cut.stderr[-2000:]
+    client = store["client"]
+    (stopped,) = client.search_runs([client.get_experiment_by_name("walkers").experiment_id])
+    assert stopped.info.status == "KILLED"
+    path = client.download_artifacts(stopped.info.run_id, "checkpoints/last.pt", str(tmp_path))
+    assert checkpoints.load(path)["trainer"]["step"] == 100
+    resumed = run_cli([f"resume={stopped.info.run_id}", *args], cwd=tmp_path, env_overrides=env)
+    assert resumed.returncode == 0, resumed.stderr[-2000:]
+    (reference,) = client.search_runs([client.get_experiment_by_name("whole").experiment_id])
+    for key in ("loss/critic", "loss/actor", "eval/return_mean"):
+        curves = [
+            [(m.step, m.value) for m in client.get_metric_history(run.info.run_id, key)]
+            for run in (reference, stopped)
+        ]
+        assert curves[0] == curves[1], key
 
 
 def test_td3bc_bad_input_is_one_line(chain):

@@ -1,4 +1,6 @@
-"""Places a stop signal may not land in: a call to the tracking store, a read or a write.
+"""Places a stop signal may not land in: a call to the tracking store, a read or a write, and a
+training step (:mod:`walkers.training.loops`: a stop inside an update left the checkpoint with
+half an update).
 
 walkers turns SIGINT and SIGTERM into a KeyboardInterrupt wherever the main thread is
 (:mod:`walkers.cli`), so a run ends KILLED after a last checkpoint. Raised inside an MLflow call

@@ -10,6 +10,13 @@ complete (REINFORCE: episodes; PPO: a rollout of steps): the agent decides insid
 the loop is the same. Every loop ends the same way (:func:`_running`): a progress bar, the
 throughput over the session, and on Ctrl-C (or SIGTERM turned into one) a last checkpoint of
 every run before the interrupt propagates.
+
+A stop lands between steps, never inside one: each step of walkers' own loops (act, env step,
+observe, update, and its logging, evaluation and checkpoint when due) runs shielded
+(:func:`walkers.interrupts.shielded`) and the signal is raised when the step is over. So the last
+checkpoint holds whole updates at a consistent count, and an offline run resumed from it logs
+what the uninterrupted run logs, bit for bit (a stop inside TD3's update once left its critic
+stepped and the step uncounted: the resume stepped that critic twice).
 """
 
 from __future__ import annotations
@@ -25,6 +32,7 @@ from tqdm import tqdm
 from walkers.agents.base import Agent, Transition
 from walkers.agents.common.actor_critic import ActorCritic
 from walkers.agents.sb3.twin import SB3Twin
+from walkers.interrupts import shielded
 from walkers.training.bookkeeping import RunBook
 
 
@@ -36,23 +44,23 @@ def train_online(agent: Agent, env: gym.Env, book: RunBook) -> dict[str, float]:
         obs, _ = book.first_reset()
         losses: dict[str, torch.Tensor] = {}
         while p.step < book.settings.total_steps:
-            action = agent.act(obs, explore=True)
-            next_obs, reward, terminated, truncated, info = env.step(action)
-            agent.observe(Transition(obs, action, float(reward), next_obs, terminated, truncated))
-            losses.update(agent.update())
-            p.step += 1
-            obs = next_obs
-            if terminated or truncated:
-                book.record_episode(info)
-                obs, _ = env.reset()
-            if _after_step(book, losses, bar):
+            with shielded():
+                action = agent.act(obs, explore=True)
+                next_obs, reward, terminated, truncated, info = env.step(action)
+                agent.observe(
+                    Transition(obs, action, float(reward), next_obs, terminated, truncated)
+                )
+                losses.update(agent.update())
+                p.step += 1
+                obs = next_obs
+                if terminated or truncated:
+                    book.record_episode(info)
+                    obs, _ = env.reset()
+                stop = _after_step(book, losses, bar)
+            if stop:
                 return
 
-    def settle() -> None:  # interrupted between observe and the count: the agent's count holds
-        if (steps := getattr(agent, "steps", None)) is not None:
-            p.step = steps
-
-    return _running([book], loop, settle=settle)[0]
+    return _running([book], loop)[0]
 
 
 def train_offline(agent: Agent, book: RunBook) -> dict[str, float]:
@@ -61,9 +69,11 @@ def train_offline(agent: Agent, book: RunBook) -> dict[str, float]:
 
     def loop(bar: tqdm) -> None:
         while p.step < book.settings.total_steps:
-            losses = agent.update()
-            p.step += 1
-            if _after_step(book, losses, bar):
+            with shielded():
+                losses = agent.update()
+                p.step += 1
+                stop = _after_step(book, losses, bar)
+            if stop:
                 return
 
     return _running([book], loop)[0]
@@ -80,31 +90,33 @@ def train_population(
         obs = [book.first_reset()[0] for book in books]  # each seeded as a single run is
         latest: dict[str, torch.Tensor] = {}
         while p.step < settings.total_steps:
-            actions = agent.act_population(np.stack(obs), explore=True)
-            results = [env.step(action) for env, action in zip(envs, actions, strict=True)]
-            agent.observe_population(
-                [
-                    Transition(obs[i], actions[i], reward, next_obs, terminated, truncated)
-                    for i, (next_obs, reward, terminated, truncated, _) in enumerate(results)
-                ]
-            )
-            for i, (book, env, result) in enumerate(zip(books, envs, results, strict=True)):
-                next_obs, _, terminated, truncated, info = result
-                book.progress.step += 1
-                obs[i] = next_obs
-                if terminated or truncated:
-                    book.record_episode(info)
-                    obs[i], _ = env.reset()
-            latest.update(agent.update())
-            logging = p.step % settings.log_every == 0
-            for i, book in enumerate(books):  # losses are read only when they are logged
-                _after_step(book, {k: v[i] for k, v in latest.items()} if logging else {}, bar)
+            with shielded():  # every member checkpoints at the same step: they resume together
+                _population_step(agent, envs, books, obs, latest, bar)
 
-    def settle() -> None:  # interrupted mid-step: every member checkpoints at the agent's step,
-        for book in books:  # so they can resume together
-            book.progress.step = agent.steps
+    return _running(books, loop, aggregate="perf/population_sps")
 
-    return _running(books, loop, aggregate="perf/population_sps", settle=settle)
+
+def _population_step(agent, envs, books, obs, latest, bar) -> None:
+    """One lockstep step of a population: act, step each env, observe, update, each book."""
+    actions = agent.act_population(np.stack(obs), explore=True)
+    results = [env.step(action) for env, action in zip(envs, actions, strict=True)]
+    agent.observe_population(
+        [
+            Transition(obs[i], actions[i], reward, next_obs, terminated, truncated)
+            for i, (next_obs, reward, terminated, truncated, _) in enumerate(results)
+        ]
+    )
+    for i, (book, env, result) in enumerate(zip(books, envs, results, strict=True)):
+        next_obs, _, terminated, truncated, info = result
+        book.progress.step += 1
+        obs[i] = next_obs
+        if terminated or truncated:
+            book.record_episode(info)
+            obs[i], _ = env.reset()
+    latest.update(agent.update())
+    logging = books[0].progress.step % books[0].settings.log_every == 0
+    for i, book in enumerate(books):  # losses are read only when they are logged
+        _after_step(book, {k: v[i] for k, v in latest.items()} if logging else {}, bar)
 
 
 def train_sb3(agent: SB3Twin, book: RunBook) -> dict[str, float]:

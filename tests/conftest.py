@@ -157,6 +157,41 @@ def signal_once_checkpointed(
     return proc.returncode, stdout, stderr
 
 
+#: ``python -c`` this, then a signal's number, N, and walkers.train's arguments: the process
+#: sends itself the signal right after its Nth Adam step, so that it lands inside an update.
+_SIGNAL_AFTER_AN_ADAM_STEP = """
+import os, runpy, sys
+import torch
+sig, at, calls = int(sys.argv[1]), int(sys.argv[2]), 0
+adam_step = torch.optim.Adam.step
+def step(self, *args, **kwargs):
+    global calls
+    out = adam_step(self, *args, **kwargs)
+    calls += 1
+    if calls == at:
+        os.kill(os.getpid(), sig)
+    return out
+torch.optim.Adam.step = step
+sys.argv = ["walkers.train", *sys.argv[3:]]
+runpy.run_module("walkers.train", run_name="__main__")
+"""
+
+
+def run_cli_signalled_inside_an_update(
+    args: list[str], cwd: Path, after_adam_steps: int, sig: int = 2, env_overrides=None
+) -> subprocess.CompletedProcess:
+    """``python -m walkers.train ARGS`` that receives ``sig`` (a real one, SIGINT by default)
+    from itself right after its ``after_adam_steps``-th optimizer step."""
+    return subprocess.run(
+        [sys.executable, "-c", _SIGNAL_AFTER_AN_ADAM_STEP, str(sig), str(after_adam_steps), *args],
+        cwd=cwd,
+        env={**os.environ, **(env_overrides or {})},
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+
+
 def all_runs(client: MlflowClient) -> list:
     """Every run in every experiment of a store (empty for a store never written to)."""
     return client.search_runs([e.experiment_id for e in client.search_experiments()])

@@ -8,6 +8,7 @@ pair each algorithm with its own twin.
 
 from __future__ import annotations
 
+import io
 import math
 
 import numpy as np
@@ -23,6 +24,7 @@ from tests.conftest import (
     new_store,
     one_line_error,
     run_cli,
+    run_cli_signalled_inside_an_update,
 )
 from walkers.agents.factory import build_agent
 from walkers.analysis.comparison import build_comparison
@@ -175,6 +177,28 @@ def test_resume_continues_an_sb3_ppo_run_with_its_normalization(tmp_path):
     history = store["client"].get_metric_history(run_id, "eval/return_mean")
     assert [m.step for m in history] == [300, 600, 900]
     assert observations_counted() >= counted + 300  # the statistics went on, not from zero
+
+
+@pytest.mark.faults  # `make test-faults`: a signal, sent by the run to itself
+def test_a_stop_inside_sb3s_ppo_update_waits_for_the_update(tmp_path):
+    """SIGINT at the 4th of the 8 Adam steps of PPO's first update (200 steps, 4 minibatches, 2
+    epochs): SB3's update runs to its end, its loop stops at the next env step (201), and the
+    checkpoint holds the whole update (Adam's step count 8), which a resume continues."""
+    store = new_store(tmp_path)
+    args = tiny("ppo", store, "impl=sb3", "total_steps=1000", "eval_every=500")
+    cut = run_cli_signalled_inside_an_update(args, tmp_path, 4)
+    assert cut.returncode == 130, cut.stderr[-2000:]
+    (run,) = all_runs(store["client"])
+    assert run.info.status == "KILLED"
+    path = store["client"].download_artifacts(run.info.run_id, "checkpoints/last.pt", str(tmp_path))
+    state = torch.load(path, weights_only=False)
+    assert state["trainer"]["step"] == 201
+    model = stable_baselines3.PPO.load(io.BytesIO(state["agent"]["model"]), device="cpu")
+    adam = model.policy.optimizer.state_dict()["state"]
+    assert {int(param["step"]) for param in adam.values()} == {8}
+    resumed = run_cli([f"resume={run.info.run_id}", *args], cwd=tmp_path)
+    assert resumed.returncode == 0, resumed.stderr[-2000:]
+    assert store["client"].get_run(run.info.run_id).info.status == "FINISHED"
 
 
 # --- the mapping, read back from what SB3 built -------------------------------------------------

@@ -8,9 +8,6 @@ from __future__ import annotations
 
 import itertools
 import json
-import os
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -24,6 +21,7 @@ from tests.conftest import (
     new_store,
     one_line_error,
     run_cli,
+    run_cli_signalled_inside_an_update,
 )
 from walkers.agents.factory import defaults_for
 from walkers.agents.td3 import TD3
@@ -277,26 +275,6 @@ def test_a_td3bc_run_resumes_where_it_stopped(chain):
     assert len([r for r in all_runs(client) if r.data.tags.get("algo") == "td3bc"]) == 1
 
 
-#: ``python -c`` this, then walkers.train's arguments: a real SIGINT sent by the process to
-#: itself right after its Nth Adam step (argv[1]), so the signal lands inside an update.
-SIGNAL_AFTER_AN_ADAM_STEP = """
-import os, runpy, signal, sys
-import torch
-calls, at = 0, int(sys.argv[1])
-adam_step = torch.optim.Adam.step
-def step(self, *args, **kwargs):
-    global calls
-    out = adam_step(self, *args, **kwargs)
-    calls += 1
-    if calls == at:
-        os.kill(os.getpid(), signal.SIGINT)
-    return out
-torch.optim.Adam.step = step
-sys.argv = ["walkers.train", *sys.argv[2:]]
-runpy.run_module("walkers.train", run_name="__main__")
-"""
-
-
 @pytest.mark.faults  # `make test-faults`: a signal, sent by the run to itself
 def test_a_run_stopped_inside_an_update_resumes_into_the_uninterrupted_run(chain, tmp_path):
     """SIGINT between the critic's and the actor's step of update 100 (TD3+BC's 149th Adam step:
@@ -308,14 +286,7 @@ def test_a_run_stopped_inside_an_update_resumes_into_the_uninterrupted_run(chain
     env = {"MINARI_DATASETS_PATH": str(chain["path"] / "minari")}
     whole = run_cli([*args, "tracking.experiment=whole"], cwd=tmp_path, env_overrides=env)
     assert whole.returncode == 0, whole.stderr[-2000:]
-    cut = subprocess.run(
-        [sys.executable, "-c", SIGNAL_AFTER_AN_ADAM_STEP, "149", *args],
-        cwd=tmp_path,
-        env={**os.environ, **env},
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    cut = run_cli_signalled_inside_an_update(args, tmp_path, 149, env_overrides=env)
     assert cut.returncode == 130, cut.stderr[-2000:]
     client = store["client"]
     (stopped,) = client.search_runs([client.get_experiment_by_name("walkers").experiment_id])

@@ -33,6 +33,12 @@ def note(reason: str) -> None:
     _noted = _noted or reason
 
 
+def stop_noted() -> bool:
+    """Whether a stop arrived inside the shielded block under way (a loop that is not ours, such
+    as SB3's ``learn``, asks this to end at its next step; the block's end then raises it)."""
+    return _noted is not None
+
+
 @contextmanager
 def shielded() -> Iterator[None]:
     """Run the block to its end whatever stop signal arrives; then raise it (KeyboardInterrupt).

@@ -13,7 +13,8 @@ every run before the interrupt propagates.
 
 A stop lands between steps, never inside one: each step of walkers' own loops (act, env step,
 observe, update, and its logging, evaluation and checkpoint when due) runs shielded
-(:func:`walkers.interrupts.shielded`) and the signal is raised when the step is over. So the last
+(:func:`walkers.interrupts.shielded`) and the signal is raised when the step is over; SB3's
+``learn`` runs shielded whole, and its callback ends it at the next env step. So the last
 checkpoint holds whole updates at a consistent count, and an offline run resumed from it logs
 what the uninterrupted run logs, bit for bit (a stop inside TD3's update once left its critic
 stepped and the step uncounted: the resume stepped that critic twice).
@@ -32,7 +33,7 @@ from tqdm import tqdm
 from walkers.agents.base import Agent, Transition
 from walkers.agents.common.actor_critic import ActorCritic
 from walkers.agents.sb3.twin import SB3Twin
-from walkers.interrupts import shielded
+from walkers.interrupts import shielded, stop_noted
 from walkers.training.bookkeeping import RunBook
 
 
@@ -145,7 +146,7 @@ def train_sb3(agent: SB3Twin, book: RunBook) -> dict[str, float]:
                 if done:
                     book.record_episode(info)
             losses = agent.latest_losses() if p.step % s.log_every == 0 else {}
-            stop = _after_step(book, losses, self.bar)
+            stop = _after_step(book, losses, self.bar) or stop_noted()
             # SB3's PPO would complete its rollout past the budget; its off-policy loop stores
             # and learns from the last step, then stops by itself
             return not stop and not (on_policy and p.step >= s.total_steps)
@@ -153,9 +154,10 @@ def train_sb3(agent: SB3Twin, book: RunBook) -> dict[str, float]:
     def loop(bar: tqdm) -> None:
         if (seed := book.first_reset_seed()) is not None:
             agent.vec_env.seed(seed)  # SB3 resets the env itself, with this seed first
-        agent.model.learn(
-            s.total_steps - p.step, callback=BookKeeping(bar), reset_num_timesteps=False
-        )
+        with shielded():  # a stop ends learn() at SB3's next env step, never inside an update
+            agent.model.learn(
+                s.total_steps - p.step, callback=BookKeeping(bar), reset_num_timesteps=False
+            )
 
     def settle() -> None:
         p.step = agent.model.num_timesteps

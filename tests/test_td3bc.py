@@ -288,6 +288,7 @@ def test_a_run_stopped_inside_an_update_resumes_into_the_uninterrupted_run(chain
     assert whole.returncode == 0, whole.stderr[-2000:]
     cut = run_cli_signalled_inside_an_update(args, tmp_path, 149, env_overrides=env)
     assert cut.returncode == 130, cut.stderr[-2000:]
+    assert "stopping (SIGINT): the step under way ends first" in cut.stderr
     client = store["client"]
     (stopped,) = client.search_runs([client.get_experiment_by_name("walkers").experiment_id])
     assert stopped.info.status == "KILLED"

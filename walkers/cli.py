@@ -157,10 +157,10 @@ def group_by_as_list(args: list[str]) -> list[str]:
 
 class _Stopping:
     """SIGINT and SIGTERM: the first one stops the run (a KeyboardInterrupt wherever the process
-    is, once any store call under way is over: :mod:`walkers.interrupts`; so every run ends
-    KILLED after a last checkpoint); any further one while it ends is acknowledged in one line
-    and otherwise ignored. ``timeout``, ``scancel`` or ``kill -TERM
-    -<pgid>`` signal make and python both (make then forwards another), a supervisor may insist,
+    is, once the training step or store call under way is over: :mod:`walkers.interrupts`; so
+    every run ends KILLED after a last checkpoint); any further one while it ends is acknowledged
+    in one line and otherwise ignored. ``timeout``, ``scancel`` or ``kill -TERM -<pgid>`` signal
+    make and python both (make then forwards another), a supervisor may insist,
     a user may press Ctrl-C twice: none of these may break the checkpoint being written or leave
     the run RUNNING. ``kill -9`` still ends the process at once (``resume=`` continues from the
     last complete checkpoint)."""
@@ -171,8 +171,11 @@ class _Stopping:
     def __call__(self, signum, frame) -> None:
         if not self.stopping:
             self.stopping = True
-            if interrupts.shielding():  # inside a store call: raised when it is over
+            if interrupts.shielding():  # inside a training step or a store call: raised after it
                 interrupts.note(f"signal {signum}")
+                # a step can hold an evaluation, which can take a while: say why we wait
+                name = signal.Signals(signum).name
+                os.write(2, f"stopping ({name}): the step under way ends first\n".encode())
                 return
             raise KeyboardInterrupt(f"signal {signum}")
         if not self.told:  # os.write: print() may be in progress in the interrupted frame

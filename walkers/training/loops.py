@@ -61,7 +61,11 @@ def train_online(agent: Agent, env: gym.Env, book: RunBook) -> dict[str, float]:
             if stop:
                 return
 
-    return _running([book], loop)[0]
+    def settle() -> None:  # train() called from Python keeps Python's own Ctrl-C, which can land
+        if (steps := getattr(agent, "steps", None)) is not None:  # between observe and the count
+            p.step = steps
+
+    return _running([book], loop, settle=settle)[0]
 
 
 def train_offline(agent: Agent, book: RunBook) -> dict[str, float]:
@@ -91,10 +95,14 @@ def train_population(
         obs = [book.first_reset()[0] for book in books]  # each seeded as a single run is
         latest: dict[str, torch.Tensor] = {}
         while p.step < settings.total_steps:
-            with shielded():  # every member checkpoints at the same step: they resume together
+            with shielded():
                 _population_step(agent, envs, books, obs, latest, bar)
 
-    return _running(books, loop, aggregate="perf/population_sps")
+    def settle() -> None:  # Python's own Ctrl-C (train() called from Python) can land mid-step:
+        for book in books:  # every member checkpoints at the agent's step, to resume together
+            book.progress.step = agent.steps
+
+    return _running(books, loop, aggregate="perf/population_sps", settle=settle)
 
 
 def _population_step(agent, envs, books, obs, latest, bar) -> None:

@@ -197,7 +197,7 @@ def walkers_ppo() -> WalkersLoop:
 
 
 class SB3PPOLoop:
-    """Stable-Baselines3's PPO at the same settings (its defaults, value clipping on as walkers'
+    """Stable-Baselines3's PPO at the same settings (its defaults, value clipping off as walkers'
     default), on ``VecNormalize``; ``learn`` collects whole rollouts, so a round is one."""
 
     round_steps = PPO_ROLLOUT
@@ -217,7 +217,7 @@ class SB3PPOLoop:
             gamma=0.99,
             gae_lambda=0.95,
             clip_range=0.2,
-            clip_range_vf=0.2,
+            clip_range_vf=None,
             max_grad_norm=0.5,
             policy_kwargs={"net_arch": [64, 64], "activation_fn": torch.nn.Tanh},
             seed=0,

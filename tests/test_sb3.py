@@ -279,7 +279,13 @@ def test_sac_maps_onto_sb3s_sac():
 
 
 def test_ppo_maps_onto_sb3s_ppo_with_vecnormalize():
-    hp, model, agent = twin("ppo", "algo.n_steps=1024", "algo.n_minibatches=16", "algo.vf_coef=0.8")
+    hp, model, agent = twin(
+        "ppo",
+        "algo.n_steps=1024",
+        "algo.n_minibatches=16",
+        "algo.vf_coef=0.8",
+        "algo.clip_value_loss=true",
+    )
     assert isinstance(model, stable_baselines3.PPO)
     assert model.batch_size == 64 and model.n_steps == 1024 and model.n_epochs == hp.n_epochs
     assert model.vf_coef == pytest.approx(0.4)  # SB3's value loss is twice walkers'
@@ -291,6 +297,8 @@ def test_ppo_maps_onto_sb3s_ppo_with_vecnormalize():
     normalize = agent.vec_normalize
     assert (normalize.norm_obs, normalize.norm_reward) == (True, True)
     assert (normalize.clip_obs, normalize.clip_reward, normalize.gamma) == (10.0, 10.0, 0.99)
+    _, unclipped, _ = twin("ppo")  # the default: no value clipping, SB3's own default
+    assert unclipped.clip_range_vf is None
 
 
 # --- refused ------------------------------------------------------------------------------------

@@ -275,10 +275,10 @@ class PPOHyperparameters(Hyperparameters):
         "epsilon of the clipped surrogate: the ratio pi/pi_old is clipped to [1-eps, 1+eps]",
     )
     clip_value_loss: bool = hp(
-        True,
+        False,
         BOOL,
-        "clip the value update around the old values by clip_coef (ppo2 and CleanRL do;\n"
-        "SB3 does not, and Andrychowicz et al. 2020 found it no help: false to turn off)",
+        "true: clip the value update around the old values by clip_coef, as ppo2 and CleanRL do;\n"
+        "off as in SB3: Andrychowicz et al. 2021 found it hurts; ab=ppo_value_clip scored it lower",
     )
     vf_coef: float = hp(
         0.5, NON_NEGATIVE, "weight of the value loss 1/2 (V - R)^2 in the total loss"

@@ -13,6 +13,7 @@ from tests.conftest import (
     all_runs,
     run_cli,
     signal_once_checkpointed,
+    spawn_cli,
     wait_for_uploaded_checkpoint,
 )
 from walkers import PROJECT_ROOT
@@ -121,3 +122,54 @@ def test_signals_to_the_whole_group_while_it_ends_leave_it_killed_with_its_check
     (run,) = all_runs(store["client"])
     assert f"continue it: python -m walkers.train resume={run.info.run_id}" in stdout + stderr
     killed_with_checkpoint_then_resumed(store, run)
+
+
+def test_ctrl_c_of_a_keyed_joblib_multirun_ends_its_runs_and_the_same_command_continues_them(
+    store,
+):
+    """The README's twin runs: a plain multirun on joblib with job keys of the user's own. Joblib
+    stops its workers with the driver, before they can end their runs; the driver ends them
+    KILLED, found by the multirun they belong to whatever their keys, and the same command
+    continues each from its last checkpoint."""
+    args = [
+        "-m",
+        "algo=td3",
+        "env=pendulum",
+        "seed=0,1",
+        "job_key=mine/${seed}",
+        "total_steps=3000",
+        "eval_every=500",
+        "eval_episodes=1",
+        "checkpoint_every=500",
+        "algo.learning_starts=100",
+        "algo.hidden_sizes=[16,16]",
+        "progress=false",
+        "torch_threads=1",
+        "hydra/launcher=joblib",
+        "hydra.launcher.n_jobs=2",
+        *store["overrides"],
+    ]
+    proc = spawn_cli(args, cwd=store["path"], new_session=True)
+    try:
+        deadline = time.monotonic() + 180
+        while len(list((store["path"] / "mlartifacts").rglob("last.pt"))) < 2:  # both training
+            assert proc.poll() is None, proc.communicate()[1][-2000:]
+            assert time.monotonic() < deadline, "no two checkpoints within 180 s"
+            time.sleep(0.2)
+        os.killpg(proc.pid, signal.SIGINT)  # Ctrl-C in the terminal: the driver and its workers
+        _, stderr = proc.communicate(timeout=180)
+    finally:
+        proc.kill()
+    assert proc.returncode == 130, stderr[-3000:]
+    assert "interrupted: multirun stopped" in stderr and "Traceback" not in stderr, stderr[-3000:]
+    runs = all_runs(store["client"])
+    assert sorted(r.data.tags["walkers.job_key"] for r in runs) == ["mine/0", "mine/1"]
+    assert {r.info.status for r in runs} <= {"KILLED", "FINISHED"}, [r.info for r in runs]
+    assert any(r.info.status == "KILLED" for r in runs)
+
+    again = run_cli(args, cwd=store["path"])
+    assert again.returncode == 0, again.stderr[-3000:]
+    continued = all_runs(store["client"])
+    assert {r.info.run_id for r in continued} == {r.info.run_id for r in runs}  # no new runs
+    assert {r.info.status for r in continued} == {"FINISHED"}
+    assert "continuing it from its last checkpoint" in again.stdout + again.stderr

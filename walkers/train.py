@@ -23,6 +23,7 @@ from omegaconf import DictConfig
 from walkers import CONF_DIR
 from walkers.cli import exit_on_bad_overrides, renamed_overrides, stop_cleanly_on_signals
 from walkers.errors import CheckpointError, ConfigError
+from walkers.tracking.names import MULTIRUN_JOB_TAG
 
 __all__ = ["main"]  # and `train`, on first use (below)
 
@@ -72,14 +73,18 @@ def main(cfg: DictConfig) -> float:
             f"ab={study})",
             2,
         )
-    if hydra_cfg.mode == RunMode.MULTIRUN and not cfg.job_key:
+    tags = {}
+    if hydra_cfg.mode == RunMode.MULTIRUN:
+        job = f"{hydra_cfg.sweep.dir}#{hydra_cfg.job.num}"
+        # how this multirun's driver finds the job's run if it stops first (any job_key)
+        tags[MULTIRUN_JOB_TAG] = job
         # the same for every attempt of this job (a cluster runs a job again if its worker dies)
-        cfg.job_key = f"{hydra_cfg.sweep.dir}#{hydra_cfg.job.num}"
+        cfg.job_key = cfg.job_key or job
     jobs = parallel_jobs()
     if cfg.torch_threads is None and jobs > 1:  # parallel jobs share the cores
         cfg.torch_threads = max(1, (os.cpu_count() or 1) // jobs)
     try:
-        return train(cfg, HydraConfig.get().overrides.task)
+        return train(cfg, HydraConfig.get().overrides.task, tags)
     except (ConfigError, CheckpointError) as e:
         fail(f"error: {e}", 2)
     except TrainingDiverged as e:
@@ -98,4 +103,12 @@ if __name__ == "__main__":
     stop_cleanly_on_signals()
     sys.argv[1:] = renamed_overrides(sys.argv[1:])
     exit_on_bad_overrides("train")
-    main()
+    try:
+        main()
+    except KeyboardInterrupt:  # a plain multirun's driver (a run and a study say it themselves)
+        print(
+            "interrupted: multirun stopped, its jobs' unfinished runs marked KILLED; "
+            "the same command continues them",
+            file=sys.stderr,
+        )
+        sys.exit(130)

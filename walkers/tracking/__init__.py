@@ -33,6 +33,7 @@ _HOMES = {
         "FINISHED",
         "GRADIENT_STEPS",
         "JOB_KEY_TAG",
+        "MULTIRUN_JOB_TAG",
         "KILLED",
         "KIND_TAG",
         "LOGGED_THROUGH_TAG",

@@ -24,9 +24,9 @@ class PrepareTrackingStore(Callback):
     Jobs launched in parallel on a fresh sqlite store otherwise race on its schema creation
     ("duplicate column name") and on creating the experiment ("database is locked"). A driver
     stopped by Ctrl-C (or SIGTERM) or by a launcher error takes its Ray jobs with it: on its way
-    out, the runs of this multirun's jobs (job keys ``<sweep dir>#<n>``) still RUNNING are ended
-    (KILLED after Ctrl-C, else FAILED). A sweep's sweeper does the same for its own jobs, and
-    tells their trials.
+    out, the runs of this multirun's jobs (tag ``walkers.multirun_job``: ``<sweep dir>#<n>``,
+    whatever their ``job_key``) still RUNNING are ended (KILLED after Ctrl-C, else FAILED). A
+    sweep's sweeper does the same for its own jobs, and tells their trials.
     """
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
@@ -50,8 +50,8 @@ class PrepareTrackingStore(Callback):
         status = tracking.status_after(error)
         try:
             client = tracking.connect(config.tracking.uri)
-            key = tracking.quoted(f"{config.hydra.sweep.dir}#%")  # this multirun's jobs
-            query = f"tags.`{tracking.JOB_KEY_TAG}` LIKE {key}"
+            jobs = tracking.quoted(f"{config.hydra.sweep.dir}#%")  # this multirun's jobs
+            query = f"tags.`{tracking.MULTIRUN_JOB_TAG}` LIKE {jobs}"
             reason = f"its multirun stopped before the job ended: {type(error).__name__}"
             experiment = config.tracking.experiment
             for run_id in tracking.end_running(client, experiment, query, status, reason):

@@ -24,5 +24,8 @@ PRUNED_TAG = "walkers.pruned_at_step"
 END_REASON_TAG = "walkers.end_reason"
 #: Tag: what identifies a multirun job across attempts (``job_key``, set by walkers.train).
 JOB_KEY_TAG = "walkers.job_key"
+#: Tag: the multirun a job's run belongs to in this attempt (``<sweep dir>#<job number>``), set
+#: whatever its ``job_key``: how the multirun's driver finds the runs its jobs left RUNNING.
+MULTIRUN_JOB_TAG = "walkers.multirun_job"
 #: Tag: the last step whose metrics reached MLflow (a resumed run logs only steps after it).
 LOGGED_THROUGH_TAG = "walkers.logged_through"

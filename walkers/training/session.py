@@ -38,8 +38,9 @@ from walkers.tuning.trial import TrialReporter
 log = logging.getLogger("walkers")
 
 
-def train(cfg: DictConfig, overrides: list[str] | tuple = ()) -> float:
-    """Train as ``cfg`` says; ``overrides`` are the command-line overrides (used by resume)."""
+def train(cfg: DictConfig, overrides: list[str] | tuple = (), tags: dict | None = None) -> float:
+    """Train as ``cfg`` says; ``overrides`` are the command-line overrides (used by resume);
+    ``tags`` go on the run(s), new or resumed (a multirun job's place in its multirun)."""
     resume.check_resume_given(cfg.resume)
     check_environment(cfg)  # before anything is created
     if not cfg.resume:
@@ -65,17 +66,17 @@ def train(cfg: DictConfig, overrides: list[str] | tuple = ()) -> float:
     if cfg.torch_threads:
         torch.set_num_threads(cfg.torch_threads)
     if cfg.population > 1:
-        summaries = _train_population(cfg, client, members)
+        summaries = _train_population(cfg, client, members, tags or {})
         values = [s.get(cfg.optimized_metric, math.nan) for s in summaries]
         log.info("%s per member = %s", cfg.optimized_metric, values)
         return float(np.mean(values))
-    summary = _train_single(cfg, client, state)
+    summary = _train_single(cfg, client, state, tags or {})
     value = summary.get(cfg.optimized_metric, math.nan)
     log.info("%s = %s", cfg.optimized_metric, value)
     return value
 
 
-def _train_single(cfg: DictConfig, client, state: dict | None) -> dict[str, float]:
+def _train_single(cfg: DictConfig, client, state: dict | None, tags: dict) -> dict[str, float]:
     data = load_dataset(cfg) if is_offline(cfg) else None
     env = None if data is not None else make_env(cfg.env)  # offline agents never step an env
     eval_env = make_env(cfg.env, shaping=False)
@@ -90,7 +91,7 @@ def _train_single(cfg: DictConfig, client, state: dict | None) -> dict[str, floa
             agent.attach(env, cfg.total_steps)  # SB3's model is built on its training env
         axis = GRADIENT_STEP_AXIS if data is not None else ENV_STEP_AXIS
         references = offline_references(cfg.env, data) if data is not None else None
-        runs = [TrainingRun.open(client, cfg, axis, data)]
+        runs = [TrainingRun.open(client, cfg, axis, data, extra_tags=tags)]
         # From here on the run exists in MLflow: every way out sets its final status.
         with ending(runs):
             offline = (
@@ -125,7 +126,7 @@ def _train_single(cfg: DictConfig, client, state: dict | None) -> dict[str, floa
 
 
 def _train_population(
-    cfg: DictConfig, client, resumed: list[tuple[DictConfig, dict]] | None
+    cfg: DictConfig, client, resumed: list[tuple[DictConfig, dict]] | None, tags: dict
 ) -> list[dict[str, float]]:
     """``population=K``: K members in one agent and one loop, one MLflow run per member.
 
@@ -142,8 +143,10 @@ def _train_population(
         agent = build_agent(cfg, env_spaces(eval_envs[0]), population=k)
         with ending(runs, population=True):
             for i, member in enumerate(members):
-                tags = {POPULATION_TAG: str(k), MEMBER_TAG: str(i)}
-                runs.append(TrainingRun.open(client, member, ENV_STEP_AXIS, extra_tags=tags))
+                place = {POPULATION_TAG: str(k), MEMBER_TAG: str(i)}
+                runs.append(
+                    TrainingRun.open(client, member, ENV_STEP_AXIS, extra_tags=tags | place)
+                )
             books = [
                 _book(member, run, agent.member_policy(i), envs[i], eval_envs[i])
                 for i, (member, run) in enumerate(zip(members, runs, strict=True))

@@ -106,9 +106,12 @@ if __name__ == "__main__":
     try:
         main()
     except KeyboardInterrupt:  # a plain multirun's driver (a run and a study say it themselves)
+        multirun = any(a in ("-m", "--multirun") for a in sys.argv[1:])
         print(
             "interrupted: multirun stopped, its jobs' unfinished runs marked KILLED; "
-            "the same command continues them",
+            "the same command continues them"
+            if multirun
+            else "interrupted before the run started",  # e.g. Ctrl-C while Hydra composes
             file=sys.stderr,
         )
         sys.exit(130)

@@ -158,13 +158,68 @@ def test_a_study_without_multirun_is_refused(store):
 
 @pytest.mark.parametrize("name", sorted(p.stem for p in (CONF_DIR / "ab").glob("*.yaml")))
 def test_every_shipped_study_is_sound(name):
-    """Each study in conf/ab/ parses, can decide at its first look, and every arm composes and
+    """Each study in conf/ab/ parses, passes the sweeper's check that a look can decide, can
+    decide at its first look, and every arm composes and
     validates on every env (what its sweeper checks before anything runs)."""
     declared = OmegaConf.to_container(
         OmegaConf.load(CONF_DIR / "ab" / f"{name}.yaml").hydra.sweeper
     )
     spec = StudySpec.parse(**declared)
-    assert spec.design().first_look_can_decide()
+    assert spec.checked_design().first_look_can_decide()
     for arm in spec.arms:
         for env in spec.envs:
             validate(compose_cfg([*arm.overrides, f"env={env}"]))
+
+
+#: The design a user wrote (issue 53): 3 questions, at most 4 seeds per arm; no look can decide.
+NEVER_DECIDES = [
+    *arms("{td3:'algo=td3',ddpg:'algo=ddpg algo.critic_layer_norm=true'}"),
+    "hydra.sweeper.envs=[bipedal_walker,hopper]",
+    "hydra.sweeper.seeds={min:3,max:4,per_round:1}",
+    "hydra.sweeper.name=mine",
+]
+
+
+def test_a_study_that_can_never_decide_is_refused_with_nothing_created(store):
+    result = run_cli(["-m", "ab=tiny", *NEVER_DECIDES, *store["overrides"]], cwd=store["path"])
+    line = one_line_error(result)
+    assert line == (
+        "error: study 'mine': with 3 questions and at most 4 seeds per arm no look can reach its "
+        "level (the fewest that can: 7); raise hydra.sweeper.seeds.max"
+    )
+    assert all_runs(store["client"]) == []
+    assert [e.name for e in store["client"].search_experiments()] == ["Default"]
+    assert not (store["path"] / "work").exists() and not (store["path"] / "multirun").exists()
+    # walkers.plan shows the same design look by look, and the sweeper's verdict on it
+    plan = run_cli(["study=ab/tiny", *NEVER_DECIDES], cwd=store["path"], module="walkers.plan")
+    assert plan.returncode == 2  # a study is named by its file or conf/ab name, not overrides
+    study_file = store["path"] / "mine.yaml"
+    study_file.write_text(
+        "hydra:\n  sweeper:\n    name: mine\n    arms: {td3: algo=td3, ddpg: algo=ddpg}\n"
+        "    envs: [bipedal_walker, hopper]\n    seeds: {min: 3, max: 4, per_round: 1}\n"
+        "    score: final/return_mean\n    alpha: 0.05\n    smallest_difference: 10\n"
+    )
+    plan = run_cli([f"study={study_file}"], cwd=store["path"], module="walkers.plan")
+    assert plan.returncode == 0, plan.stderr[-2000:]
+    assert "| 1 | 3 | 0.0138 | 0.1 | no | no | 5 |" in plan.stdout
+    assert "| 2 | 4 | 0.00287 | 0.0286 | no | no | 6 |" in plan.stdout
+    assert "refused by the sweeper: study 'mine': with 3 questions" in plan.stdout
+    assert "'equal' can never be answered" in plan.stdout
+
+
+def test_a_study_whose_first_look_cannot_decide_runs_with_a_warning(store):
+    """3 seeds per arm can never reach alpha 0.05 (smallest p 0.1), 5 can: the study runs its
+    looks, says so in one line, and records the looks that can decide on its run."""
+    late = "hydra.sweeper.seeds={min:3,max:5,per_round:2}"
+    result = run_cli(study(store, *OBVIOUS, late), cwd=store["path"])
+    assert result.returncode == 0, result.stderr[-3000:]
+    warnings = [line for line in result.stderr.splitlines() if line.startswith("warning:")]
+    assert warnings == [
+        "warning: study 't': at 3 seeds per arm no look can decide anything whatever the returns "
+        "(only 'continue'); the looks at 5 can (`python -m walkers.plan study=...` shows each look)"
+    ]
+    parent = study_run(store)
+    assert parent.data.tags["ab.deciding_looks"] == "5"
+    assert parent.data.tags["ab.equal_looks"] == "5"
+    assert parent.data.tags["answer.short_vs_long_on_pendulum"] == "A better"
+    assert len(job_runs(store)) == 10  # the look at 3 continued, the look at 5 decided

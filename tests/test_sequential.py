@@ -74,3 +74,24 @@ def test_the_levels_spend_alpha_exactly_once():
     assert design.looks == (5, 10, 15, 20)
     assert math.isclose(sum(design.level(k) for k in range(4)), 0.05 / 3)
     assert all(design.level(k) > 0 for k in range(4))
+
+
+@pytest.mark.parametrize(
+    ("questions", "seeds"), [(1, (2, 6, 1)), (3, (3, 4, 1)), (3, (5, 7, 1)), (9, (6, 20, 2))]
+)
+def test_the_looks_that_can_decide_are_those_where_separated_seeds_decide(questions, seeds):
+    """``deciding_looks``/``equal_looks`` say exactly where the real test can answer: completely
+    separated arms answer "better" there and only there, and arms within ``delta`` of each other
+    answer "equal" there and only there."""
+    from walkers.analysis.sequential import EQUAL, decide_look, smallest_p
+
+    design = Design.of(0.05, questions, *seeds, 10.0)
+    for k, n in enumerate(design.looks):
+        low, high = np.arange(n, dtype=float), np.arange(n, dtype=float) + 1000
+        separated = decide_look(high, low, design, k).decision == A_BETTER
+        assert separated == (k in design.deciding_looks()), (k, n)
+        alike = np.arange(n, dtype=float) * 1e-3  # interleaved, far inside delta
+        equal = decide_look(alike, alike + 5e-4, design, k).decision == EQUAL
+        assert equal == (k in design.equal_looks()), (k, n)
+        exact = sps.mannwhitneyu(high, low, method="exact").pvalue
+        assert smallest_p(n, two_sided=True) == pytest.approx(exact)

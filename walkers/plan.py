@@ -3,6 +3,7 @@
     python -m walkers.plan env=pendulum algos=[reinforce,td3] tracking.experiment=ab_pendulum
     python -m walkers.plan env=walker2d tracking.experiment=sizes group_by=algo.hidden_sizes \
         relative=0.1
+    python -m walkers.plan study=locomotion        # a study file's looks: which can decide
 
 The pilot is the runs a report would compare (:mod:`walkers.analysis.comparison`); the power
 analysis is :mod:`walkers.analysis.power`, the plan and its cost :mod:`walkers.analysis.planning`.
@@ -11,23 +12,29 @@ analysis is :mod:`walkers.analysis.power`, the plan and its cost :mod:`walkers.a
 from __future__ import annotations
 
 import sys
+from pathlib import Path
 
 import hydra
 import numpy as np
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from walkers import CONF_DIR
+from walkers.ab.spec import StudySpec
 from walkers.analysis.comparison import build_comparison
 from walkers.analysis.planning import arm_cost, cost_rows, plan
 from walkers.analysis.power import CLOSED_FORM, RESAMPLING
+from walkers.analysis.sequential import equal_line, looks_table
 from walkers.cli import exit_on_bad_overrides, group_by_as_list, or_exit
 from walkers.errors import ConfigError
 
+STUDY_FIELDS = ("name", "arms", "envs", "seeds", "score", "alpha", "smallest_difference")
 METHODS = {"auto": "auto", "closed": CLOSED_FORM, "resampling": RESAMPLING}
 
 
 def make_plan(cfg: DictConfig) -> str:
     """The plan as text (what the command prints)."""
+    if cfg.study is not None:
+        return study_looks(str(cfg.study))
     if cfg.method not in METHODS:
         raise ConfigError(f"method={cfg.method!r} is not allowed: one of {', '.join(METHODS)}")
     powers = list(cfg.powers)
@@ -69,6 +76,39 @@ def make_plan(cfg: DictConfig) -> str:
             "|---" * (4 + len(cfg.workers)) + "|",
         ]
         lines += ["| " + " | ".join(row) + " |" for row in cost_rows(p, costs, cfg.workers)]
+    return "\n".join(lines)
+
+
+def study_looks(study: str) -> str:
+    """A study file's design, look by look: its seeds, level, and whether "better" and "equal"
+    can be answered there at all, with the fewest seeds that could (what the sweeper checks)."""
+    path = Path(study) if study.endswith((".yaml", ".yml")) else CONF_DIR / "ab" / f"{study}.yaml"
+    if not path.is_file():
+        known = ", ".join(sorted(p.stem for p in (CONF_DIR / "ab").glob("*.yaml")))
+        raise ConfigError(
+            f"study={study!r} is not allowed: a study file (a .yaml path) or one of {known}"
+        )
+    declared = OmegaConf.to_container(OmegaConf.load(path)).get("hydra", {}).get("sweeper")
+    if not isinstance(declared, dict):
+        raise ConfigError(f"study={study!r}: {path} declares no hydra.sweeper (not a study file)")
+    declared = {k: v for k, v in declared.items() if k in STUDY_FIELDS}
+    spec = StudySpec.parse(**declared)
+    design = spec.design()
+    lines = [
+        f"Study {spec.name!r}: {design.questions} questions (alpha {spec.alpha:.3g}, Bonferroni: "
+        f"{design.alpha_per_question:.3g} each), looks at {', '.join(map(str, design.looks))} "
+        "seeds per arm. Test: two-sided Mann-Whitney U, exact; its smallest p is complete "
+        "separation of the arms' seeds.",
+        "",
+        looks_table(design),
+    ]
+    try:
+        spec.checked_design()
+        deciding = design.deciding_looks()
+        lines.append(f"'better' can be answered from {design.looks[deciding[0]]} seeds per arm.")
+    except ConfigError as e:
+        lines.append(f"refused by the sweeper: {e}")
+    lines.append(equal_line(design) + ".")
     return "\n".join(lines)
 
 

@@ -20,12 +20,12 @@ from walkers import tracking
 from walkers.ab.rounds import Scores, Standing
 from walkers.ab.spec import StudySpec
 from walkers.analysis.arms import arm_config, differing_keys, run_params
+from walkers.analysis.sequential import Design
 from walkers.errors import ConfigError
 
 log = logging.getLogger("walkers")
 
-STUDY_KIND = "ab"
-STUDY_TAG = "walkers.ab"
+STUDY_KIND, STUDY_TAG = tracking.STUDY_KIND, tracking.STUDY_TAG
 
 
 def open_study_run(client, experiment: str, spec: StudySpec, spool_dir) -> tracking.Tracker:
@@ -54,6 +54,17 @@ def open_study_run(client, experiment: str, spec: StudySpec, spool_dir) -> track
         tracker.end(tracking.status_after(e))
         raise
     return tracker
+
+
+def log_deciding_looks(tracker: tracking.Tracker, design: Design) -> None:
+    """Tags ``ab.deciding_looks`` and ``ab.equal_looks``: the seeds per arm of the looks that
+    can answer "better" (and "equal") at all; the others can only say "continue"."""
+    tracker.set_tags(
+        {
+            "ab.deciding_looks": ",".join(str(design.looks[k]) for k in design.deciding_looks()),
+            "ab.equal_looks": ",".join(str(design.looks[k]) for k in design.equal_looks()),
+        }
+    )
 
 
 def job_runs(client, experiment: str, spec: StudySpec) -> list:

@@ -138,11 +138,43 @@ class StudySpec:
         return [Question(a, b, env) for env in places for a, b in pairs]
 
     def design(self) -> Design:
+        return self._design(len(self.questions()))
+
+    def checked_design(self) -> Design:
+        """The design, refused in one line when no look of it can answer "better" whatever the
+        returns (the rank test's smallest p never reaches a look's level): such a study would
+        spend its whole budget to end "not settled". The line names the fewest ``seeds.max``
+        that could decide, and the most questions that could at this maximum."""
+        design = self.design()
+        if design.deciding_looks():
+            return design
+        questions = len(self.questions())
+        fewest_max = next(
+            high
+            for high in itertools.count(self.seeds_max + 1)
+            if self._design(questions, high).deciding_looks()
+        )
+        most_questions = next(
+            (q for q in range(questions - 1, 0, -1) if self._design(q).deciding_looks()), None
+        )
+        fewer = (
+            f", or ask at most {most_questions} question{'s' * (most_questions > 1)} (fewer "
+            "arms or envs)"
+            if most_questions
+            else ""
+        )
+        raise ConfigError(
+            f"study {self.name!r}: with {questions} question{'s' * (questions > 1)} and at most "
+            f"{self.seeds_max} seeds per arm no look can reach its level (the fewest that can: "
+            f"{fewest_max}); raise hydra.sweeper.seeds.max{fewer}"
+        )
+
+    def _design(self, questions: int, seeds_max: int | None = None) -> Design:
         return Design.of(
             self.alpha,
-            len(self.questions()),
+            questions,
             self.seeds_min,
-            self.seeds_max,
+            seeds_max or self.seeds_max,
             self.per_round,
             self.smallest_difference,
         )

@@ -32,7 +32,7 @@ from walkers import tracking
 from walkers.ab import ledger
 from walkers.ab.rounds import standing
 from walkers.ab.spec import StudySpec
-from walkers.analysis.sequential import A_BETTER, B_BETTER, EQUAL
+from walkers.analysis.sequential import A_BETTER, B_BETTER, EQUAL, Design, equal_line
 from walkers.cli import one_line_hydra_error
 from walkers.errors import ConfigError
 from walkers.training.provenance import shareable
@@ -65,6 +65,7 @@ class StudySweeper(Sweeper):
     def sweep(self, arguments: list[str]) -> Any:
         try:
             spec = StudySpec.parse(**self.declared)
+            design = spec.checked_design()  # before anything is created: a study that can decide
             base = self._base_overrides(arguments)
             configs = {
                 (arm.name, env): self._job_config(base, spec, arm.name, env)
@@ -78,9 +79,10 @@ class StudySweeper(Sweeper):
         except ConfigError as e:
             print(f"error: {e}", file=sys.stderr)
             sys.exit(2)
-        self._say_design(spec)
+        self._say_design(spec, design)
         try:
             with tracking.ending([study]):
+                ledger.log_deciding_looks(study, design)
                 final = self._rounds(client, experiment, spec, base, study)
         except KeyboardInterrupt:
             print(
@@ -195,8 +197,7 @@ class StudySweeper(Sweeper):
             raise ConfigError(f"arm {arm!r} on {env}: {e}") from None
         return tracking.flatten(shareable(cfg))
 
-    def _say_design(self, spec: StudySpec) -> None:
-        design = spec.design()
+    def _say_design(self, spec: StudySpec, design: Design) -> None:
         log.info(
             "study %r: %d arms x %d envs, %d questions (alpha %.3g, Bonferroni: %.3g each); "
             "looks at %s seeds per arm; smallest difference %.3g normalized points",
@@ -209,13 +210,21 @@ class StudySweeper(Sweeper):
             ", ".join(map(str, design.looks)),
             spec.smallest_difference,
         )
-        if not design.first_look_can_decide():
-            log.warning(
-                "with %d questions the first look (%d seeds per arm) cannot decide anything, "
-                "whatever the returns: raise hydra.sweeper.seeds.min or ask fewer questions",
-                design.questions,
-                design.looks[0],
+        deciding = design.deciding_looks()
+        if len(deciding) < len(design.looks):  # one line that stands out among the jobs' logs
+            idle = [n for k, n in enumerate(design.looks) if k not in deciding]
+            print(
+                f"warning: study {spec.name!r}: at {_seeds(idle)} seeds per arm no look can "
+                f"decide anything whatever the returns (only 'continue'); the looks at "
+                f"{_seeds([design.looks[k] for k in deciding])} can (`python -m walkers.plan "
+                f"study=...` shows each look)",
+                file=sys.stderr,
             )
+        log.info("study %r: %s", spec.name, equal_line(design))
+
+
+def _seeds(counts: list[int]) -> str:
+    return ", ".join(map(str, counts))
 
 
 def verdicts(final) -> list[str]:

@@ -94,8 +94,70 @@ class Design:
 
     def first_look_can_decide(self) -> bool:
         """Whether complete separation at the first look reaches the first look's level."""
-        n = self.looks[0]
-        return _two_sided_p(np.arange(n), np.arange(n) + n) <= self.level(0)
+        return 0 in self.deciding_looks()
+
+    def deciding_looks(self) -> tuple[int, ...]:
+        """The looks (0-based) at which "better" can be answered at all: complete separation of
+        the arms' seeds (the smallest p the exact rank test can give) reaches the look's level.
+        At any other look the answer is "continue" whatever the returns."""
+        return tuple(
+            k for k, n in enumerate(self.looks) if smallest_p(n, two_sided=True) <= self.level(k)
+        )
+
+    def equal_looks(self) -> tuple[int, ...]:
+        """The looks at which "equal" can be answered at all: both one-sided tests of the TOST
+        reach the look's level at their smallest p (none when ``delta`` is 0: not asked)."""
+        if self.delta <= 0:
+            return ()
+        return tuple(
+            k for k, n in enumerate(self.looks) if smallest_p(n, two_sided=False) <= self.level(k)
+        )
+
+
+def fewest_seeds(level: float, *, two_sided: bool = True) -> int:
+    """The fewest seeds per arm whose smallest p reaches ``level``."""
+    n = 1
+    while smallest_p(n, two_sided=two_sided) > level:
+        n += 1
+    return n
+
+
+def looks_table(design: Design) -> str:
+    """Each look of a design as a markdown table: its seeds, its level, and whether "better" and
+    "equal" can be answered there at all (with the fewest seeds that could, at that level)."""
+    better, equal = set(design.deciding_looks()), set(design.equal_looks())
+    rows = [
+        "| look | seeds per arm | level | smallest p | can answer 'better' | can answer 'equal' "
+        "| fewest seeds per arm that could |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for k, n in enumerate(design.looks):
+        rows.append(
+            f"| {k + 1} | {n} | {design.level(k):.3g} | {smallest_p(n, two_sided=True):.3g} "
+            f"| {'yes' if k in better else 'no'} "
+            f"| {'yes' if k in equal else 'no' if design.delta > 0 else 'not asked'} "
+            f"| {fewest_seeds(design.level(k))} |"
+        )
+    return "\n".join(rows) + "\n"
+
+
+def equal_line(design: Design) -> str:
+    """Whether the design can ever answer "equal" (the TOST reaching a look's level)."""
+    if design.delta <= 0:
+        return "'equal' is not asked (smallest_difference is 0)"
+    looks = design.equal_looks()
+    if not looks:
+        return (
+            f"'equal' can never be answered: at {design.looks[-1]} seeds per arm the "
+            "equivalence test cannot reach its level (raise hydra.sweeper.seeds.max)"
+        )
+    return f"'equal' can be answered from {design.looks[looks[0]]} seeds per arm"
+
+
+def smallest_p(n: int, *, two_sided: bool) -> float:
+    """The smallest p the exact Mann-Whitney U test gives for ``n`` against ``n`` seeds: complete
+    separation, one ordering of the ``C(2n, n)`` equally likely ones (two of them two-sided)."""
+    return min(1.0, (2 if two_sided else 1) / math.comb(2 * n, n))
 
 
 @dataclass

@@ -33,8 +33,9 @@ class PrepareTrackingStore(Callback):
         check_ray_cluster(config.hydra.launcher)
         if not str(config.tracking.uri).startswith("sqlite:"):
             return  # a server creates its schema once and handles concurrent clients
-        if "walkers.tuning" in str(config.hydra.sweeper.get("_target_", "")):
-            return  # walkers' sweeper prepares the store itself, once its study is checked
+        if str(config.hydra.sweeper.get("_target_", "")).startswith("walkers."):
+            return  # walkers' sweepers (a tuning sweep, an A/B study) prepare the store
+            # themselves, once their declaration is checked: bad input creates nothing
         try:
             client = tracking.connect(config.tracking.uri)
             tracking.get_or_create_experiment(client, config.tracking.experiment)

@@ -38,6 +38,8 @@ _HOMES = {
         "LOGGED_THROUGH_TAG",
         "MULTIRUN_JOB_TAG",
         "PRUNED_TAG",
+        "STUDY_KIND",
+        "STUDY_TAG",
         "X_AXIS_TAG",
         "status_after",
     ),

@@ -29,3 +29,6 @@ JOB_KEY_TAG = "walkers.job_key"
 MULTIRUN_JOB_TAG = "walkers.multirun_job"
 #: Tag: the last step whose metrics reached MLflow (a resumed run logs only steps after it).
 LOGGED_THROUGH_TAG = "walkers.logged_through"
+#: Tags of an A/B study's own run: ``walkers.kind=ab`` and ``walkers.ab=<study name>``; its jobs'
+#: runs nest under it (``mlflow.parentRunId``).
+STUDY_KIND, STUDY_TAG = "ab", "walkers.ab"

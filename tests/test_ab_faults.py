@@ -106,3 +106,48 @@ def test_a_terminated_study_ends_everything_it_started_and_reruns_to_its_answer(
     assert study_run(store).info.status == "FINISHED"
     finished = [r for r in job_runs(store) if r.info.status == "FINISHED"]
     assert len(finished) == 10
+
+
+def test_a_study_killed_on_one_machine_finishes_on_another_from_its_bundle(store, tmp_path):
+    """The GPU box's case: a study killed -9 on one store (a machine given back mid-study) is
+    exported with its checkpoints and imported into another store, where the same command
+    finishes it: no finished seed runs again, and the job cut mid-run continues its own
+    (imported) run from its checkpoint."""
+    from tests.conftest import new_store
+    from tests.test_bundles import export, ingest
+
+    args = ["total_steps=10000", "checkpoint_every=1000", "eval_every=1000", "progress=false"]
+    proc = spawn_cli(study(store, *OBVIOUS, *args), cwd=store["path"], new_session=True)
+    try:
+        wait_for_a_job(store, proc, "FINISHED")
+        wait_for_a_job(store, proc, "RUNNING", logged_below=5000)
+        time.sleep(1.0)  # past its first checkpoint
+        os.killpg(proc.pid, signal.SIGKILL)
+    finally:
+        proc.kill()
+        proc.communicate()
+    before = {r.data.tags["walkers.job_key"]: r for r in job_runs(store)}
+    finished_there = {k for k, r in before.items() if r.info.status == "FINISHED"}
+    cut = {k for k, r in before.items() if r.info.status == "RUNNING"}
+    assert finished_there and cut, {k: r.info.status for k, r in before.items()}
+
+    bundle = tmp_path / "bundle"
+    every = "statuses=[FINISHED,RUNNING,KILLED,FAILED]"
+    done = export(store, "study=t", every, "checkpoints=true", f"out={bundle}")
+    assert done.returncode == 0, done.stderr[-2000:]
+    (tmp_path / "home").mkdir()
+    home = new_store(tmp_path / "home")
+    assert ingest(home, bundle).returncode == 0
+    imported = {r.data.tags["walkers.job_key"]: r.info.run_id for r in job_runs(home)}
+
+    result = run_cli(study(home, *OBVIOUS, *args), cwd=home["path"])
+    assert result.returncode == 0, result.stderr[-3000:]
+    runs = job_runs(home)
+    finished = [r.data.tags["walkers.job_key"] for r in runs if r.info.status == "FINISHED"]
+    assert len(finished) == len(set(finished)) == 10, finished
+    by_key = {r.data.tags["walkers.job_key"]: r for r in runs if r.info.status == "FINISHED"}
+    for key in finished_there:  # not run again: the imported run is the one that counts
+        assert by_key[key].info.run_id == imported[key]
+    continued = [k for k in cut if by_key[k].info.run_id == imported[k]]
+    assert continued, "the cut job started anew instead of continuing its imported run"
+    assert "continuing it from its last checkpoint" in result.stdout + result.stderr

@@ -1,0 +1,223 @@
+"""Results bundles (``walkers.export``, ``walkers.ingest``) on real stores: a real tiny study
+exported, imported into fresh stores, reported on, rerun, and real bad bundles refused."""
+
+from __future__ import annotations
+
+import gzip
+import json
+import shutil
+
+import pytest
+from mlflow.tracking import MlflowClient
+
+from tests.conftest import all_runs, compose_cfg, new_store, one_line_error, run_cli
+from tests.test_ab import OBVIOUS, study
+from walkers.errors import ConfigError
+from walkers.export import export as export_runs
+from walkers.tracking import bundles
+
+
+def export(store, *args: str):
+    return run_cli(
+        ["tracking.experiment=ab_tiny", *args, f"tracking.uri={store['uri']}"],
+        cwd=store["path"],
+        module="walkers.export",
+    )
+
+
+def ingest(store, bundle, *args: str):
+    return run_cli(
+        [f"bundle={bundle}", *args, f"tracking.uri={store['uri']}"],
+        cwd=store["path"],
+        module="walkers.ingest",
+    )
+
+
+def report(store) -> str:
+    """The report of the study's runs, with each run id replaced by the run's origin."""
+    out = store["path"] / "report"
+    result = run_cli(
+        ["env=pendulum", "tracking.experiment=ab_tiny", f"out={out}", "log_report=false",
+         *store["overrides"]],
+        cwd=store["path"],
+        module="walkers.compare",
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr[-2000:]
+    text = (out / "report.md").read_text() + (out / "summary.json").read_text()
+    text = text.replace(str(store["path"]), "<store>")
+    for run in all_runs(store["client"]):
+        text = text.replace(run.info.run_id, run.data.tags.get(bundles.ORIGIN_TAG, run.info.run_id))
+    return text
+
+
+@pytest.fixture(scope="module")
+def studied(tmp_path_factory):
+    """A finished tiny study (2 arms x 5 seeds of 400 steps) in a store of its own, exported."""
+    source = new_store(tmp_path_factory.mktemp("source"))
+    result = run_cli(study(source, *OBVIOUS), cwd=source["path"])
+    assert result.returncode == 0, result.stderr[-3000:]
+    done = export(source, "study=t", f"out={source['path'] / 'bundle'}")
+    assert done.returncode == 0, done.stderr[-2000:]
+    return source, source["path"] / "bundle", done.stdout
+
+
+def test_an_imported_study_reports_to_the_digit_and_a_second_import_adds_nothing(studied, tmp_path):
+    source, bundle, printed = studied
+    assert f"exported 11 runs to {bundle}" in printed
+    assert "Downloading artifacts" not in printed
+    target = new_store(tmp_path)
+
+    first = ingest(target, bundle)
+    assert first.returncode == 0, first.stderr[-2000:]
+    assert "imported 11 runs" in first.stdout and "(0 already there)" in first.stdout
+    copies = {r.data.tags[bundles.ORIGIN_TAG]: r for r in all_runs(target["client"])}
+    originals = {r.info.run_id: r for r in all_runs(source["client"])}
+    assert copies.keys() == originals.keys()
+    for origin, copy in copies.items():
+        original = originals[origin]
+        assert copy.info.status == original.info.status
+        assert copy.info.start_time == original.info.start_time
+        assert copy.data.params == original.data.params
+        assert copy.data.metrics == original.data.metrics
+        for key in ("eval/return_mean", "train/episode_return"):
+            if key in original.data.metrics:  # every point: step, value and time
+                history = [
+                    [(m.step, m.value, m.timestamp) for m in c.get_metric_history(r, key)]
+                    for c, r in ((source["client"], origin), (target["client"], copy.info.run_id))
+                ]
+                assert sorted(history[0]) == sorted(history[1])
+        parent = original.data.tags.get("mlflow.parentRunId")
+        if parent:  # nested under the imported study run, not the source store's id
+            assert copies[parent].info.run_id == copy.data.tags["mlflow.parentRunId"]
+        if copy.data.tags.get("walkers.kind") != "ab":  # a training run's composed config
+            names = [f.path for f in target["client"].list_artifacts(copy.info.run_id)]
+            assert "config.yaml" in names
+    assert report(target) == report(source)
+
+    second = ingest(target, bundle)
+    assert second.returncode == 0, second.stderr[-2000:]
+    assert "imported 0 runs" in second.stdout and "(11 already there)" in second.stdout
+    assert len(all_runs(target["client"])) == 11
+
+    # the study command on the new store finds it done: nothing runs
+    again = run_cli(study(target, *OBVIOUS), cwd=target["path"])
+    assert again.returncode == 0, again.stderr[-2000:]
+    assert "short is better than long on pendulum (5 seeds per arm" in again.stdout
+    assert len(all_runs(target["client"])) == 11
+
+    # and a bundle of the new store's copies goes home as nothing new: origins travel
+    back = target["path"] / "back"
+    assert export(target, "study=t", f"out={back}").returncode == 0
+    home = ingest(source, back)
+    assert home.returncode == 0 and "imported 0 runs" in home.stdout, home.stderr[-2000:]
+
+
+def _rewritten(bundle, tmp_path, change) -> str:
+    copy = tmp_path / "edited"
+    shutil.copytree(bundle, copy)
+    with gzip.open(copy / bundles.RUNS_FILE, "rt") as f:
+        document = json.load(f)
+    change(document)
+    with gzip.open(copy / bundles.RUNS_FILE, "wt") as f:
+        json.dump(document, f)
+    return str(copy)
+
+
+def _truncated(bundle, tmp_path) -> str:
+    copy = tmp_path / "truncated"
+    shutil.copytree(bundle, copy)
+    data = (copy / bundles.RUNS_FILE).read_bytes()
+    (copy / bundles.RUNS_FILE).write_bytes(data[: len(data) // 2])
+    return str(copy)
+
+
+def test_a_truncated_bundle_is_refused_in_one_line_and_nothing_is_imported(studied, tmp_path):
+    _, bundle, _ = studied
+    target = new_store(tmp_path)
+    line = one_line_error(ingest(target, _truncated(bundle, tmp_path)))
+    assert "is truncated or corrupt" in line, line
+    assert all_runs(target["client"]) == []
+    assert [e.name for e in target["client"].search_experiments()] == ["Default"]
+
+
+@pytest.mark.parametrize(
+    ("make", "expected"),
+    [
+        (
+            lambda b, t: _rewritten(b, t, lambda d: d.update(version=2)),
+            "is version 2: this walkers reads version 1",
+        ),
+        (
+            lambda b, t: _rewritten(b, t, lambda d: d["runs"].pop()),
+            "is incomplete: its run count does not match",
+        ),
+        (
+            lambda b, t: _rewritten(b, t, lambda d: d.update(format="mlflow-export-import")),
+            "is not a walkers bundle (format 'walkers-bundle')",
+        ),
+        (lambda b, t: str(t / "nowhere"), "is not a bundle: it has no runs.json.gz"),
+    ],
+)
+def test_a_foreign_or_damaged_bundle_is_refused_and_nothing_is_imported(
+    studied, tmp_path, make, expected
+):
+    """The checks ``walkers.ingest`` runs first (in-process: the CLI case above proves the line)."""
+    _, bundle, _ = studied
+    target = new_store(tmp_path)
+    with pytest.raises(ConfigError) as refused:
+        bundles.import_bundle(target["client"], make(bundle, tmp_path))
+    assert expected in str(refused.value)
+    assert all_runs(target["client"]) == []
+    assert [e.name for e in target["client"].search_experiments()] == ["Default"]
+
+
+def test_a_run_that_conflicts_with_a_finished_one_is_refused_before_anything_is_written(
+    studied, tmp_path
+):
+    """Another run of the same job already FINISHED in the target (the study ran there too):
+    importing would count a seed twice."""
+    _, bundle, _ = studied
+    target = new_store(tmp_path)
+    client = MlflowClient(target["uri"])
+    experiment_id = client.create_experiment("ab_tiny")
+    theirs = client.create_run(experiment_id, tags={"walkers.job_key": "ab/t/short/pendulum/3"})
+    client.set_terminated(theirs.info.run_id, "FINISHED")
+    line = one_line_error(ingest(target, bundle))
+    assert f"conflicts with run {theirs.info.run_id} already FINISHED" in line, line
+    assert "(ab/t/short/pendulum/3)" in line
+    assert [r.info.run_id for r in all_runs(client)] == [theirs.info.run_id]
+    # into another experiment it goes whole
+    elsewhere = ingest(target, bundle, "into=ab_tiny_copy")
+    assert elsewhere.returncode == 0 and "imported 11 runs" in elsewhere.stdout
+
+
+def test_a_bad_export_is_refused_in_one_line_and_writes_nothing(studied):
+    source, _, _ = studied
+    before = sorted(p.name for p in source["path"].iterdir())
+    line = one_line_error(export(source, "study=nope", "out=new_bundle"))
+    assert "study='nope' has no run in this experiment: nothing exported" in line, line
+    assert sorted(p.name for p in source["path"].iterdir()) == before
+
+
+@pytest.mark.parametrize(
+    ("args", "expected"),
+    [
+        (["tracking.experiment=nope"], "tracking.experiment='nope' is not in the store"),
+        (["statuses=[DONE]"], "statuses=['DONE'] is not allowed: some of FINISHED, KILLED"),
+        (["study=t", "where={algo: a2c}"], "no run of 'ab_tiny' matches: nothing exported"),
+        (["study=t", "where=[3]"], "where=[3] is not allowed: a mapping of tags"),
+        (["study=t", "out=."], "out='.' is not empty: export into a new folder"),
+    ],
+)
+def test_bad_exports_are_refused(studied, args, expected):
+    """The checks ``walkers.export`` runs first (in-process: the CLI case above proves the line)."""
+    source, _, _ = studied
+    out = source["path"] / "new_bundle"
+    cfg = compose_cfg(
+        [f"tracking.uri={source['uri']}", "tracking.experiment=ab_tiny", f"out={out}", *args],
+        config_name="export",
+    )
+    with pytest.raises(ConfigError) as refused:
+        export_runs(cfg)
+    assert expected in str(refused.value)
+    assert not out.exists()

@@ -1,0 +1,38 @@
+"""``python -m walkers.ingest``: a bundle's runs into a store (``import`` is Python's keyword).
+
+    python -m walkers.ingest bundle=results/tiny
+    python -m walkers.ingest bundle=gpu_box_study tracking.uri=postgresql+psycopg://...
+
+Checked whole before anything is written; the same bundle twice adds nothing
+(:mod:`walkers.tracking.bundles`).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import hydra
+from omegaconf import DictConfig
+
+from walkers import CONF_DIR, tracking
+from walkers.cli import exit_on_bad_overrides, or_exit
+from walkers.tracking import bundles
+
+
+def ingest(cfg: DictConfig) -> bundles.Imported:
+    client = tracking.connect(cfg.tracking.uri)
+    return bundles.import_bundle(client, Path(cfg.bundle), cfg.into)
+
+
+@hydra.main(config_path=str(CONF_DIR), config_name="ingest")
+def main(cfg: DictConfig) -> None:
+    done = or_exit(ingest, cfg)
+    print(
+        f"imported {len(done.added)} runs from {cfg.bundle} ({done.present} already there); "
+        f"open them: `make ui`, then {tracking.ui_url(done.experiment_id)}"
+    )
+
+
+if __name__ == "__main__":
+    exit_on_bad_overrides("ingest")
+    main()

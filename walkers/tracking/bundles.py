@@ -1,0 +1,370 @@
+"""Results bundles: runs taken out of one MLflow store and put into another, whole and once.
+
+A bundle is a folder::
+
+    <bundle>/runs.json.gz        every run: params, tags, status, times, the full history of
+                                 every metric (step, value, time), its composed config.yaml
+    <bundle>/artifacts/<origin>/ checkpoints, when exported with them (sha256 in runs.json.gz)
+
+``runs.json.gz`` describes itself: ``format`` and ``version`` say what reads it, ``source`` what
+was selected from which experiment, and each run carries its provenance (the code's commit,
+package versions, device, CPU-hours: tags, params and metrics the run logged itself).
+
+Importing is keyed, as a study's reruns are. Every imported run is tagged with its origin
+(``walkers.origin``: the run id in the store it was first logged to, kept through any number of
+copies), so a bundle imported twice adds nothing. A run whose job key (``walkers.job_key``)
+already has a FINISHED run of another origin in the target experiment is a conflict: the import
+is refused before anything is written. FINISHED runs imported this way count as done for the
+study that made them: the same study command on the target store runs only what is missing.
+
+Why not mlflow-export-import (read first): it copies runs through the REST API into per-run
+folders of JSON and every artifact (megabytes per run with models and videos), creates new runs
+on every import (a second import duplicates the study's seeds), and knows no job keys; it would
+also bring its own pins of MLflow. What walkers needs is a few hundred lines over MLflow's own
+client: one compact file, keyed and idempotent imports, checked before writing.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import gzip
+import hashlib
+import json
+import logging
+import math
+import os
+import shutil
+import tempfile
+import time
+import zlib
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+
+from mlflow.entities import Metric, Param, RunTag
+
+from walkers.errors import ConfigError
+from walkers.tracking.client import get_or_create_experiment, search_runs, tags_equal
+from walkers.tracking.names import FINISHED, JOB_KEY_TAG, KILLED, KIND_TAG, STUDY_KIND, STUDY_TAG
+
+log = logging.getLogger("walkers")
+
+FORMAT = "walkers-bundle"
+VERSION = 1
+RUNS_FILE = "runs.json.gz"
+ARTIFACTS_DIR = "artifacts"
+#: Tag: the run id in the store a run was first logged to (set on every imported copy).
+ORIGIN_TAG = "walkers.origin"
+#: Tag: the bundle an imported run came from.
+IMPORTED_FROM_TAG = "walkers.imported_from"
+#: Tag of a run whose import is under way (removed when it completes; an import interrupted by
+#: kill -9 leaves it, and the next import deletes that run and imports it again).
+IMPORTING_TAG = "walkers.importing"
+#: The artifacts every run carries in its bundle (small, text); checkpoints only on request.
+CONFIG_ARTIFACT = "config.yaml"
+CHECKPOINTS = "checkpoints"
+_PROGRESS_BAR = "MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR"
+#: MLflow's per-call limits of log_batch.
+_BATCH = {"metrics": 1000, "params": 100, "tags": 100}
+
+
+@dataclass
+class Exported:
+    path: Path
+    runs: int
+    bytes: int
+
+
+@dataclass
+class Imported:
+    experiment_id: str
+    added: list[str]  # run ids created in the target store
+    present: int  # runs of the bundle already there
+
+
+def _origin(run) -> str:
+    return run.data.tags.get(ORIGIN_TAG, run.info.run_id)
+
+
+# --- export -----------------------------------------------------------------------------------
+def select_runs(
+    client, experiment_id: str, study: str | None, where: dict[str, str], statuses: list[str]
+) -> list:
+    """The runs to export: a study's (its own run and its jobs'), else the whole experiment;
+    then those whose tags equal ``where`` (e.g. ``{algo: td3, env: Walker2d-v5}``) and whose
+    status is in ``statuses`` (a study's own run is kept whatever its status)."""
+    runs = search_runs(client, experiment_id)
+    if study is not None:
+        own = [
+            r
+            for r in runs
+            if r.data.tags.get(KIND_TAG) == STUDY_KIND and r.data.tags.get(STUDY_TAG) == study
+        ]
+        if not own:
+            raise ConfigError(f"study={study!r} has no run in this experiment: nothing exported")
+        ids = {r.info.run_id for r in own}
+        jobs = [r for r in runs if r.data.tags.get("mlflow.parentRunId") in ids]
+        runs = own + [r for r in jobs if r.info.status in statuses]
+    else:
+        runs = [r for r in runs if r.info.status in statuses]
+    runs = [r for r in runs if all(r.data.tags.get(k) == str(v) for k, v in where.items())]
+    runs.sort(key=lambda r: r.info.start_time or 0)
+    return runs
+
+
+def export_runs(
+    client, experiment: str, runs: list, out: Path, selection: str, checkpoints: bool = False
+) -> Exported:
+    """Write ``runs`` (of ``experiment``) as a bundle in ``out`` (a new or empty folder).
+
+    Written beside ``out`` first and renamed into place: an export that fails or is stopped
+    leaves no half-written bundle."""
+    out = Path(out)
+    if out.exists() and any(out.iterdir()):
+        raise ConfigError(f"out={str(out)!r} is not empty: export into a new folder")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with (
+        _no_progress_bars(),
+        tempfile.TemporaryDirectory(dir=out.parent, prefix=f".{out.name}.") as tmp,
+    ):
+        staging = Path(tmp) / "bundle"
+        staging.mkdir()
+        records = [_run_record(client, run, staging, checkpoints) for run in runs]
+        document = {
+            "format": FORMAT,
+            "version": VERSION,
+            "created": int(time.time()),
+            "source": {"experiment": experiment, "selection": selection, "runs": len(records)},
+            "runs": records,
+        }
+        with gzip.open(staging / RUNS_FILE, "wt", encoding="utf-8", compresslevel=9) as f:
+            json.dump(document, f, separators=(",", ":"))
+        if out.exists():
+            out.rmdir()
+        staging.rename(out)
+    size = sum(p.stat().st_size for p in out.rglob("*") if p.is_file())
+    return Exported(out, len(records), size)
+
+
+@contextlib.contextmanager
+def _no_progress_bars():
+    """MLflow draws a progress bar for every artifact it downloads: one per run here."""
+    before = os.environ.get(_PROGRESS_BAR)
+    os.environ[_PROGRESS_BAR] = "false"
+    try:
+        yield
+    finally:
+        if before is None:
+            del os.environ[_PROGRESS_BAR]
+        else:
+            os.environ[_PROGRESS_BAR] = before
+
+
+def _run_record(client, run, staging: Path, checkpoints: bool) -> dict:
+    info, data = run.info, run.data
+    record = {
+        "origin": _origin(run),
+        "run_name": info.run_name,
+        "status": info.status,
+        "start_time": info.start_time,
+        "end_time": info.end_time,
+        "params": dict(data.params),
+        "tags": dict(data.tags),
+        "metrics": {key: _history(client, info.run_id, key) for key in sorted(data.metrics)},
+        "config": _text_artifact(client, info.run_id, CONFIG_ARTIFACT),
+        "artifacts": [],
+    }
+    if checkpoints:
+        record["artifacts"] = _copy_checkpoints(client, info.run_id, staging, record["origin"])
+    return record
+
+
+def _history(client, run_id: str, key: str) -> dict[str, list]:
+    """A metric's whole history, column by column (steps, values, times in ms)."""
+    points = sorted(client.get_metric_history(run_id, key), key=lambda m: (m.step, m.timestamp))
+    return {
+        "step": [m.step for m in points],
+        "value": [_number(m.value) for m in points],
+        "time": [m.timestamp for m in points],
+    }
+
+
+def _number(value: float):
+    """JSON has no NaN or infinity: they travel as strings."""
+    return value if math.isfinite(value) else repr(value)
+
+
+def _text_artifact(client, run_id: str, name: str) -> str | None:
+    with tempfile.TemporaryDirectory() as tmp:
+        try:
+            path = client.download_artifacts(run_id, name, tmp)
+        except Exception:  # a run that never logged it (killed while opening)
+            return None
+        return Path(path).read_text()
+
+
+def _copy_checkpoints(client, run_id: str, staging: Path, origin: str) -> list[dict]:
+    names = [f.path for f in client.list_artifacts(run_id, CHECKPOINTS) if not f.is_dir]
+    if not names:
+        return []
+    listed = []
+    for name in names:
+        local = staging / ARTIFACTS_DIR / origin / name
+        local.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryDirectory() as tmp:
+            shutil.move(client.download_artifacts(run_id, name, tmp), local)
+        listed.append(
+            {"path": name, "bytes": local.stat().st_size, "sha256": _sha256(local)},
+        )
+    return listed
+
+
+def _sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+# --- reading ----------------------------------------------------------------------------------
+def read_bundle(path: Path) -> dict:
+    """The bundle's document, checked: its format, version and artifacts; a truncated or
+    foreign file is refused in one line."""
+    path = Path(path)
+    runs_file = path / RUNS_FILE if path.is_dir() else path
+    if not runs_file.is_file():
+        raise ConfigError(f"bundle={str(path)!r} is not a bundle: it has no {RUNS_FILE}")
+    try:
+        with gzip.open(runs_file, "rt", encoding="utf-8") as f:
+            document = json.load(f)
+    except (EOFError, OSError, zlib.error, UnicodeDecodeError) as e:
+        raise ConfigError(
+            f"bundle={str(path)!r} is truncated or corrupt ({e}): nothing imported"
+        ) from None
+    except json.JSONDecodeError as e:
+        raise ConfigError(
+            f"bundle={str(path)!r} is not a walkers bundle ({e}): nothing imported"
+        ) from None
+    if not isinstance(document, dict) or document.get("format") != FORMAT:
+        raise ConfigError(f"bundle={str(path)!r} is not a walkers bundle (format {FORMAT!r})")
+    if document.get("version") != VERSION:
+        raise ConfigError(
+            f"bundle={str(path)!r} is version {document.get('version')!r}: this walkers reads "
+            f"version {VERSION} (export it again with this version, or update walkers)"
+        )
+    runs = document.get("runs")
+    if not isinstance(runs, list) or len(runs) != document.get("source", {}).get("runs"):
+        raise ConfigError(f"bundle={str(path)!r} is incomplete: its run count does not match")
+    for record in runs:
+        for artifact in record.get("artifacts", []):
+            local = runs_file.parent / ARTIFACTS_DIR / record["origin"] / artifact["path"]
+            if not local.is_file() or _sha256(local) != artifact["sha256"]:
+                raise ConfigError(
+                    f"bundle={str(path)!r}: {ARTIFACTS_DIR}/{record['origin']}/"
+                    f"{artifact['path']} is missing or damaged (sha256): nothing imported"
+                )
+    document["root"] = str(runs_file.parent)
+    return document
+
+
+def _metrics(record: dict) -> Iterable[Metric]:
+    for key, history in record["metrics"].items():
+        for step, value, at in zip(history["step"], history["value"], history["time"], strict=True):
+            yield Metric(key, float(value), int(at), int(step))
+
+
+# --- import -----------------------------------------------------------------------------------
+def import_bundle(client, bundle: Path, experiment: str | None = None) -> Imported:
+    """Put a bundle's runs into ``experiment`` (default: the one they were exported from) of the
+    store ``client`` talks to. Checked whole before anything is written; each run is written
+    whole or deleted (a stop between runs leaves whole runs, which the next import skips)."""
+    document = read_bundle(bundle)
+    experiment = experiment or document["source"]["experiment"]
+    there = client.get_experiment_by_name(experiment)
+    if there is not None:
+        _delete_interrupted_imports(client, there.experiment_id)
+    existing = search_runs(client, there.experiment_id) if there is not None else []
+    by_origin = {_origin(run): run.info.run_id for run in existing}
+    finished_by_key = {
+        run.data.tags[JOB_KEY_TAG]: run
+        for run in existing
+        if run.info.status == FINISHED and JOB_KEY_TAG in run.data.tags
+    }
+    todo = [record for record in document["runs"] if record["origin"] not in by_origin]
+    for record in todo:
+        key = record["tags"].get(JOB_KEY_TAG)
+        there = finished_by_key.get(key) if key else None
+        if there is not None:
+            raise ConfigError(
+                f"bundle={str(bundle)!r}: run {record['origin']} ({key}) conflicts with run "
+                f"{there.info.run_id} already FINISHED in experiment {experiment!r} under the same "
+                "job key: nothing imported (import into another experiment: into=NAME)"
+            )
+    experiment_id = get_or_create_experiment(client, experiment)  # checked: now it may write
+    # parents first, so that a job's run nests under its study's (or sweep's) imported run
+    origins = {record["origin"] for record in todo}
+    todo.sort(key=lambda r: r["tags"].get("mlflow.parentRunId") in origins)
+    added = []
+    for record in todo:
+        run_id = _import_run(client, experiment_id, record, by_origin, document)
+        by_origin[record["origin"]] = run_id
+        added.append(run_id)
+    return Imported(experiment_id, added, len(document["runs"]) - len(todo))
+
+
+def _delete_interrupted_imports(client, experiment_id: str) -> None:
+    for run in search_runs(client, experiment_id, tags_equal({IMPORTING_TAG: "true"})):
+        log.warning("deleting run %s: its import was interrupted", run.info.run_id)
+        client.delete_run(run.info.run_id)
+
+
+def _import_run(client, experiment_id: str, record: dict, by_origin: dict, document) -> str:
+    tags = dict(record["tags"])
+    parent = tags.get("mlflow.parentRunId")
+    if parent is not None:
+        if parent in by_origin:
+            tags["mlflow.parentRunId"] = by_origin[parent]
+        else:  # its parent did not travel: a flat run rather than a dangling link
+            del tags["mlflow.parentRunId"]
+    tags |= {ORIGIN_TAG: record["origin"], IMPORTED_FROM_TAG: Path(document["root"]).name}
+    run = client.create_run(
+        experiment_id,
+        start_time=record["start_time"],
+        tags={IMPORTING_TAG: "true"},
+        run_name=record["run_name"],
+    )
+    run_id = run.info.run_id
+    try:
+        params = [Param(k, v) for k, v in record["params"].items()]
+        for chunk in _chunks(params, _BATCH["params"]):
+            client.log_batch(run_id, params=chunk)
+        for chunk in _chunks(list(_metrics(record)), _BATCH["metrics"]):
+            client.log_batch(run_id, metrics=chunk)
+        if record.get("config") is not None:
+            with tempfile.TemporaryDirectory() as tmp:
+                path = Path(tmp) / CONFIG_ARTIFACT
+                path.write_text(record["config"])
+                client.log_artifact(run_id, str(path))
+        root = Path(document["root"]) / ARTIFACTS_DIR / record["origin"]
+        for artifact in record.get("artifacts", []):
+            name = Path(artifact["path"])
+            client.log_artifact(run_id, str(root / name), str(name.parent))
+        tag_list = [RunTag(k, v) for k, v in tags.items()]
+        for chunk in _chunks(tag_list, _BATCH["tags"]):
+            client.log_batch(run_id, tags=chunk)
+        client.delete_tag(run_id, IMPORTING_TAG)
+        # a run that was RUNNING where it came from is not running here: KILLED, so that its
+        # job continues it from its checkpoint (or starts it anew without one)
+        status = record["status"] if record["status"] != "RUNNING" else KILLED
+        client.set_terminated(run_id, status, end_time=record["end_time"])
+    except BaseException:
+        with contextlib.suppress(Exception):
+            client.delete_run(run_id)
+        raise
+    return run_id
+
+
+def _chunks(items: list, size: int) -> Iterable[list]:
+    for i in range(0, len(items), size):
+        yield items[i : i + size]

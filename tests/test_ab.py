@@ -13,6 +13,7 @@ from tests.conftest import all_runs, compose_cfg, one_line_error, run_cli
 from walkers import CONF_DIR
 from walkers.ab.spec import StudySpec
 from walkers.errors import ConfigError
+from walkers.tracking.bundles import read_bundle
 from walkers.training.validate import validate
 
 
@@ -76,10 +77,20 @@ def test_an_obvious_difference_stops_at_the_minimum_seeds_and_a_rerun_runs_nothi
         assert parent.data.metrics[f"ab/cpu_hours.{arm}"] == pytest.approx(spent) and spent > 0
     spent_line = r"CPU-hours of the finished runs: (short|long) [0-9.e-]+, (long|short) [0-9.e-]+\n"
     assert re.search(spent_line, result.stdout)
+    # it ends with its report and its bundle, and says where they are
+    assert "report: reports/ab_tiny/Pendulum-v1/report.md" in result.stdout
+    assert "bundle: reports/ab_tiny/bundle (11 runs" in result.stdout
+    report = (store["path"] / "reports/ab_tiny/Pendulum-v1/report.md").read_text()
+    assert "reinforce (env.max_episode_steps=100)" in report
+    bundle = read_bundle(store["path"] / "reports/ab_tiny/bundle")
+    assert {r["origin"] for r in bundle["runs"]} == {r.info.run_id for r in runs} | {
+        parent.info.run_id
+    }
 
     again = run_cli(study(store, *OBVIOUS), cwd=store["path"])
     assert again.returncode == 0, again.stderr[-3000:]
     assert len(job_runs(store)) == 10  # nothing ran twice
+    assert "bundle: reports/ab_tiny/bundle (11 runs" in again.stdout  # written again, whole
     assert "short is better than long on pendulum (5 seeds per arm" in again.stdout
     assert study_run(store).info.status == "FINISHED"
 

@@ -24,6 +24,54 @@ def test_the_aggregates_match_their_definitions_by_hand():
         assert low <= point <= high
 
 
+#: A fixture of normalized scores (runs x envs) and what rliable 1.2.0 itself computed on it
+#: (installed apart, with pandas < 3: `metrics.aggregate_*`, `probability_of_improvement`, and
+#: `library.get_interval_estimates` with 20,000 stratified bootstrap draws for the CIs). Its
+#: median is rliable's: over envs of each env's mean score (A: 83.2; the pooled median is 77).
+RLIABLE_FIXTURE = {
+    "A": np.array([[12.0, 85.0, 140.0], [-4.0, 91.0, 60.0], [30.0, 77.0, 105.0],
+                   [8.0, 99.0, 131.0], [21.0, 64.0, 88.0]]),
+    "B": np.array([[2.0, 40.0, 95.0], [10.0, 55.0, 72.0], [-8.0, 61.0, 110.0],
+                   [5.0, 38.0, 83.0], [15.0, 47.0, 66.0]]),
+}  # fmt: skip
+RLIABLE_SAYS = {
+    "A": {
+        "mean": (67.13333333333334, 57.2, 76.6),
+        "median": (83.2, 71.8, 93.0),
+        "IQM": (68.33333333333333, 58.44444444444444, 79.22222222222223),
+        "optimality gap": (37.93333333333333, 31.66666666666667, 44.80166666666652),
+    },
+    "B": {
+        "mean": (46.06666666666666, 40.4, 51.86666666666667),
+        "median": (48.2, 40.6, 55.8),
+        "IQM": (44.888888888888886, 40.333333333333336, 50.78055555555532),
+        "optimality gap": (54.6, 49.53333333333333, 59.733333333333334),
+    },
+}
+RLIABLE_P_A_BETTER = (0.8, 0.6266666666666666, 0.9466666666666667)
+
+
+def _per_env(matrix: np.ndarray) -> dict[str, np.ndarray]:
+    return {f"env{j}": matrix[:, j] for j in range(matrix.shape[1])}
+
+
+@pytest.mark.parametrize("arm", ["A", "B"])
+def test_every_aggregate_is_rliable_s_own(arm):
+    """Points to the last digit; CIs (another random stream) within a normalized point."""
+    ours = suite.aggregate_cis(_per_env(RLIABLE_FIXTURE[arm]), n_resamples=20_000)
+    for name, (point, low, high) in RLIABLE_SAYS[arm].items():
+        assert ours[name][0] == pytest.approx(point, rel=1e-12), name
+        assert ours[name][1] == pytest.approx(low, abs=1.0), name
+        assert ours[name][2] == pytest.approx(high, abs=1.0), name
+
+
+def test_probability_of_improvement_is_rliable_s_own():
+    a, b = (_per_env(RLIABLE_FIXTURE[arm]) for arm in ("A", "B"))
+    point, low, high = suite.average_improvement(a, b, n_resamples=5000)
+    assert point == pytest.approx(RLIABLE_P_A_BETTER[0], rel=1e-12)
+    assert (low, high) == pytest.approx(RLIABLE_P_A_BETTER[1:], abs=0.02)
+
+
 def test_the_bootstrap_is_stratified_by_env():
     # two envs whose scores never overlap: a stratified resample keeps half the runs in each, so
     # the pooled median stays between the envs; resampling across envs would not

@@ -30,6 +30,7 @@ from omegaconf import DictConfig, open_dict
 
 from walkers import tracking
 from walkers.ab import ledger
+from walkers.ab.results import write_results
 from walkers.ab.rounds import standing
 from walkers.ab.spec import StudySpec
 from walkers.analysis.sequential import A_BETTER, B_BETTER, EQUAL, Design, equal_line
@@ -97,6 +98,8 @@ class StudySweeper(Sweeper):
             sys.exit(1)
         print(ledger.standing_table(final))
         for line in verdicts(final):
+            log.info("%s", line)
+        for line in write_results(self.hydra_context.config_loader, self.config, spec, client):
             log.info("%s", line)
         log.info("study %r: MLflow run %s ended %s", spec.name, study.run_id, study.status)
         log.info("open it: `make ui`, then %s", study.url)

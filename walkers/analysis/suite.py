@@ -4,10 +4,13 @@ Every score is first normalized per env: 100 x (score - random) / (reference - r
 references from ``conf/env/<env>.yaml`` (``scores``). An arm's runs over the suite are then the
 (env, seed) pairs, and:
 
-- mean, median, IQM (the mean of the middle 50%, ``scipy.stats.trim_mean(x, 0.25)``) and the
-  optimality gap (the mean shortfall below 100: ``mean(max(100 - x, 0))``) of the pooled
-  normalized scores, each with a *stratified* bootstrap CI: seeds are resampled within each env,
-  never across envs;
+- the aggregates of rliable's ``metrics`` module, each with a *stratified* bootstrap CI (seeds
+  resampled within each env, never across envs): the mean (over envs of each env's mean score),
+  the median (over envs of each env's mean score: rliable's ``aggregate_median``, not the
+  median of the pooled runs), the IQM (the mean of the middle 50% of the pooled (env, seed)
+  scores, ``scipy.stats.trim_mean(x, 0.25)``) and the optimality gap (the pooled mean shortfall
+  below 100: ``mean(max(100 - x, 0))``); ``tests/test_suite.py`` pins each to values rliable
+  1.2.0 itself computed on a fixture;
 - P(A > B) averaged over envs (per env the Mann-Whitney U / nm of the two arms' seeds), with
   the same stratified bootstrap;
 - the performance profile: the fraction of an arm's runs whose normalized score exceeds tau;
@@ -36,11 +39,20 @@ def optimality_gap(x: np.ndarray, target: float = 100.0) -> float:
     return float(np.mean(np.maximum(target - x, 0.0)))
 
 
-AGGREGATES: dict[str, Callable[[np.ndarray], float]] = {
-    "mean": lambda x: float(np.mean(x)),
-    "median": lambda x: float(np.median(x)),
-    "IQM": iqm,
-    "optimality gap": optimality_gap,
+def _env_means(per_env: Mapping[str, np.ndarray]) -> np.ndarray:
+    return np.array([np.mean(x) for x in per_env.values()])
+
+
+def _pooled(per_env: Mapping[str, np.ndarray]) -> np.ndarray:
+    return np.concatenate(list(per_env.values()))
+
+
+#: rliable's aggregates, each of an arm's normalized scores per env (env -> its seeds' scores).
+AGGREGATES: dict[str, Callable[[Mapping[str, np.ndarray]], float]] = {
+    "mean": lambda per_env: float(np.mean(_env_means(per_env))),
+    "median": lambda per_env: float(np.median(_env_means(per_env))),
+    "IQM": lambda per_env: iqm(_pooled(per_env)),
+    "optimality gap": lambda per_env: optimality_gap(_pooled(per_env)),
 }
 
 
@@ -61,12 +73,11 @@ def aggregate_cis(
     n_resamples: int = 2000,
     seed: int = 0,
 ) -> dict[str, tuple[float, float, float]]:
-    """Each aggregate of the pooled (env, seed) scores: ``(point, low, high)``."""
-    pooled = np.concatenate(list(per_env.values()))
+    """Each aggregate of an arm's scores per env: ``(point, low, high)``."""
     rng = np.random.default_rng(seed)
-    draws = [np.concatenate(list(_stratified(per_env, rng).values())) for _ in range(n_resamples)]
+    draws = [_stratified(per_env, rng) for _ in range(n_resamples)]
     return {
-        name: (f(pooled), *_interval([f(d) for d in draws], confidence))
+        name: (f(per_env), *_interval([f(d) for d in draws], confidence))
         for name, f in AGGREGATES.items()
     }
 

@@ -113,14 +113,23 @@ def select_runs(
 
 
 def export_runs(
-    client, experiment: str, runs: list, out: Path, selection: str, checkpoints: bool = False
+    client,
+    experiment: str,
+    runs: list,
+    out: Path,
+    selection: str,
+    checkpoints: bool = False,
+    replace: bool = False,
 ) -> Exported:
-    """Write ``runs`` (of ``experiment``) as a bundle in ``out`` (a new or empty folder).
+    """Write ``runs`` (of ``experiment``) as a bundle in ``out``: a new or empty folder, or with
+    ``replace`` an earlier bundle (a study's, written again when it ends again).
 
     Written beside ``out`` first and renamed into place: an export that fails or is stopped
     leaves no half-written bundle."""
     out = Path(out)
-    if out.exists() and any(out.iterdir()):
+    if replace and (out / RUNS_FILE).is_file():
+        pass  # swapped below, once the new one is whole
+    elif out.exists() and any(out.iterdir()):
         raise ConfigError(f"out={str(out)!r} is not empty: export into a new folder")
     out.parent.mkdir(parents=True, exist_ok=True)
     with (
@@ -140,7 +149,7 @@ def export_runs(
         with gzip.open(staging / RUNS_FILE, "wt", encoding="utf-8", compresslevel=9) as f:
             json.dump(document, f, separators=(",", ":"))
         if out.exists():
-            out.rmdir()
+            out.rename(Path(tmp) / "earlier")  # removed with the staging folder
         staging.rename(out)
     size = sum(p.stat().st_size for p in out.rglob("*") if p.is_file())
     return Exported(out, len(records), size)

@@ -11,7 +11,7 @@ import pytest
 from mlflow.tracking import MlflowClient
 
 from tests.conftest import all_runs, compose_cfg, new_store, one_line_error, run_cli
-from tests.test_ab import OBVIOUS, study
+from tests.test_ab import OBVIOUS, arms, study
 from walkers.errors import ConfigError
 from walkers.export import export as export_runs
 from walkers.tracking import bundles
@@ -71,7 +71,11 @@ def test_an_imported_study_reports_to_the_digit_and_a_second_import_adds_nothing
     assert first.returncode == 0, first.stderr[-2000:]
     assert "imported 11 runs" in first.stdout and "(0 already there)" in first.stdout
     copies = {r.data.tags[bundles.ORIGIN_TAG]: r for r in all_runs(target["client"])}
-    originals = {r.info.run_id: r for r in all_runs(source["client"])}
+    originals = {  # the study's run and its jobs' (not the report the study logged)
+        r.info.run_id: r
+        for r in all_runs(source["client"])
+        if r.data.tags.get("walkers.kind") != "report"
+    }
     assert copies.keys() == originals.keys()
     for origin, copy in copies.items():
         original = originals[origin]
@@ -103,7 +107,8 @@ def test_an_imported_study_reports_to_the_digit_and_a_second_import_adds_nothing
     again = run_cli(study(target, *OBVIOUS), cwd=target["path"])
     assert again.returncode == 0, again.stderr[-2000:]
     assert "short is better than long on pendulum (5 seeds per arm" in again.stdout
-    assert len(all_runs(target["client"])) == 11
+    trained = [r for r in all_runs(target["client"]) if r.data.tags.get("walkers.kind") != "report"]
+    assert len(trained) == 11
 
     # and a bundle of the new store's copies goes home as nothing new: origins travel
     back = target["path"] / "back"
@@ -221,3 +226,30 @@ def test_bad_exports_are_refused(studied, args, expected):
         export_runs(cfg)
     assert expected in str(refused.value)
     assert not out.exists()
+
+
+def test_a_study_with_a_reference_arm_trains_only_its_other_arms(studied, tmp_path):
+    """The study's 'long' arm declared as the bundle's: only 'short' trains, and the answer,
+    the report and the refusal of a design that needs seeds the bundle lacks follow."""
+    _, bundle, _ = studied
+    target = new_store(tmp_path)
+    declared = arms(
+        "{short:'algo=reinforce env.max_episode_steps=100',"
+        f"long:{{reference:'{bundle}',arm:long}}}}"
+    )
+    too_many = run_cli(study(target, *declared), cwd=target["path"])  # seeds 5..7
+    line = one_line_error(too_many)
+    assert f"arm 'long': reference {bundle} holds no seed 5 of pendulum" in line, line
+    assert all_runs(target["client"]) == []
+
+    five = "hydra.sweeper.seeds={min:5,max:5,per_round:1}"
+    result = run_cli(study(target, *declared, five), cwd=target["path"])
+    assert result.returncode == 0, result.stderr[-3000:]
+    trained = [r for r in all_runs(target["client"]) if "walkers.job_key" in r.data.tags]
+    assert sorted(r.data.tags["walkers.job_key"] for r in trained) == [
+        f"ab/t/short/pendulum/{seed}" for seed in range(5)
+    ]
+    assert "short is better than long on pendulum (5 seeds per arm" in result.stdout
+    assert "report: reports/ab_tiny/Pendulum-v1/report.md" in result.stdout, result.stdout[-3000:]
+    report = (target["path"] / "reports/ab_tiny/Pendulum-v1/report.md").read_text()
+    assert "## Arms from references" in report and f"| `{bundle}` |" in report

@@ -14,6 +14,7 @@ import hydra
 from omegaconf import DictConfig, OmegaConf
 
 from walkers import CONF_DIR, tracking
+from walkers.agents import fingerprint
 from walkers.cli import exit_on_bad_overrides, or_exit
 from walkers.errors import ConfigError
 from walkers.tracking import bundles
@@ -45,7 +46,13 @@ def export(cfg: DictConfig) -> bundles.Exported:
         selection += " where " + ", ".join(f"{k}={v}" for k, v in where.items())
     selection += f"; statuses {','.join(statuses)}" + ("; checkpoints" * bool(cfg.checkpoints))
     return bundles.export_runs(
-        client, cfg.tracking.experiment, runs, Path(cfg.out), selection, bool(cfg.checkpoints)
+        client,
+        cfg.tracking.experiment,
+        runs,
+        Path(cfg.out),
+        selection,
+        checkpoints=bool(cfg.checkpoints),
+        fingerprint=fingerprint.of_run,
     )
 
 

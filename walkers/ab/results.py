@@ -17,6 +17,7 @@ from omegaconf import DictConfig, open_dict
 
 from walkers import tracking
 from walkers.ab.spec import StudySpec
+from walkers.agents import fingerprint
 from walkers.analysis.comparison import compare
 from walkers.analysis.suite_report import compare_suite
 from walkers.errors import ConfigError
@@ -33,21 +34,28 @@ def report_config(config_loader, config: DictConfig, spec: StudySpec) -> DictCon
     cfg = config_loader.load_configuration("compare", overrides, RunMode.RUN)
     with open_dict(cfg):
         del cfg["hydra"]
+        cfg.reference = [
+            arm.reference + (f"#{arm.of}" if arm.of else "") for arm in spec.arms if arm.reference
+        ]
         cfg.tracking = config.tracking  # by reference: a store's URI is never an override
         cfg.work_dir = config.work_dir
     return cfg
 
 
-def write_results(config_loader, config: DictConfig, spec: StudySpec, client) -> list[str]:
-    """Write the study's report and bundle; returns what to print (where they are)."""
+def write_results(
+    config_loader, config: DictConfig, spec: StudySpec, client, shared: dict[str, dict]
+) -> list[str]:
+    """Write the study's report and bundle; returns what to print (where they are).
+    ``shared``: env -> the params the study's jobs share there (what its references match)."""
     experiment = config.tracking.experiment
     lines = []
     try:
         cfg = report_config(config_loader, config, spec)
+        beside = {params["env.id"]: params for params in shared.values()}
         if spec.suite:
-            _, out = compare_suite(cfg)
+            _, out = compare_suite(cfg, beside)
         else:
-            _, out, _ = compare(cfg)
+            _, out, _ = compare(cfg, beside)
         lines.append(f"report: {out / 'report.md'}")
     except ConfigError as e:  # e.g. runs without evaluations: say so, keep the answers
         log.warning("study %r: no report: %s", spec.name, e)
@@ -60,6 +68,7 @@ def write_results(config_loader, config: DictConfig, spec: StudySpec, client) ->
         Path("reports") / experiment / "bundle",
         f"study={spec.name}; statuses FINISHED",
         replace=True,
+        fingerprint=fingerprint.of_run,
     )
     lines.append(
         f"bundle: {done.path} ({done.runs} runs, {done.bytes / 1024:.1f} KiB; "

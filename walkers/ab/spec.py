@@ -38,10 +38,19 @@ _NAME = re.compile(r"^[A-Za-z0-9_.-]+$")
 
 @dataclass(frozen=True)
 class Arm:
-    """One configuration: a name and the overrides that make it."""
+    """One configuration: a name and the overrides that make it; or a reference arm, whose
+    seeds come from a results bundle (``reference``; ``of``: the arm of the study that made
+    it, where the bundle holds several) and are never trained."""
 
     name: str
     overrides: tuple[str, ...]
+    reference: str | None = None
+    of: str | None = None
+
+    def describe(self) -> str:
+        if self.reference:
+            return f"reference {self.reference}" + (f" (arm {self.of})" if self.of else "")
+        return " ".join(self.overrides)
 
 
 @dataclass(frozen=True)
@@ -179,6 +188,11 @@ class StudySpec:
             self.smallest_difference,
         )
 
+    @property
+    def trained_arms(self) -> tuple[Arm, ...]:
+        """The arms the study trains: all but its reference arms."""
+        return tuple(arm for arm in self.arms if arm.reference is None)
+
     def arm(self, name: str) -> Arm:
         return next(arm for arm in self.arms if arm.name == name)
 
@@ -201,7 +215,7 @@ class StudySpec:
     def design_params(self) -> dict[str, str]:
         """What fixes the study's test: logged once as params, refused if a rerun differs."""
         return {
-            "ab.arms": ", ".join(f"{a.name}: {' '.join(a.overrides)}" for a in self.arms),
+            "ab.arms": ", ".join(f"{a.name}: {a.describe()}" for a in self.arms),
             "ab.envs": ",".join(self.envs),
             "ab.seeds": f"min={self.seeds_min} max={self.seeds_max} per_round={self.per_round}",
             "ab.score": self.score,
@@ -221,6 +235,9 @@ def _arms(arms) -> tuple[Arm, ...]:
     for name, overrides in arms.items():
         if not _NAME.match(str(name)):
             raise ConfigError(f"arm name {name!r} is not allowed: letters, digits, '_', '.' or '-'")
+        if isinstance(overrides, Mapping):
+            out.append(_reference_arm(str(name), overrides))
+            continue
         items = shlex.split(overrides) if isinstance(overrides, str) else list(overrides or [])
         try:
             parsed = parser.parse_overrides(items)
@@ -241,6 +258,20 @@ def _arms(arms) -> tuple[Arm, ...]:
                 )
         out.append(Arm(str(name), tuple(items)))
     return tuple(out)
+
+
+def _reference_arm(name: str, declared: Mapping) -> Arm:
+    """``{reference: PATH}`` (a results bundle), with ``arm: NAME`` where it holds a study's
+    several arms."""
+    unknown = set(declared) - {"reference", "arm"}
+    path = declared.get("reference")
+    if unknown or not isinstance(path, str) or not path:
+        raise ConfigError(
+            f"arm {name!r}: {dict(declared)!r} is not allowed: overrides, or a reference arm "
+            "{reference: <bundle folder>, arm: <its arm in the bundle, optional>}"
+        )
+    of = declared.get("arm")
+    return Arm(name, (), reference=path, of=None if of is None else str(of))
 
 
 def _envs(envs) -> tuple[str, ...]:

@@ -30,6 +30,7 @@ from omegaconf import DictConfig, open_dict
 
 from walkers import tracking
 from walkers.ab import ledger
+from walkers.ab.reference_arms import reference_scores
 from walkers.ab.results import write_results
 from walkers.ab.rounds import standing
 from walkers.ab.spec import StudySpec
@@ -70,9 +71,11 @@ class StudySweeper(Sweeper):
             base = self._base_overrides(arguments)
             configs = {
                 (arm.name, env): self._job_config(base, spec, arm.name, env)
-                for arm in spec.arms
+                for arm in spec.trained_arms
                 for env in spec.envs
             }
+            self.shared = {env: self._job_config(base, spec, None, env) for env in spec.envs}
+            self.reference_scores = reference_scores(spec, self.shared)
             client = tracking.connect(self.config.tracking.uri)
             experiment = self.config.tracking.experiment
             ledger.check_arms_unchanged(ledger.job_runs(client, experiment, spec), spec, configs)
@@ -99,7 +102,8 @@ class StudySweeper(Sweeper):
         print(ledger.standing_table(final))
         for line in verdicts(final):
             log.info("%s", line)
-        for line in write_results(self.hydra_context.config_loader, self.config, spec, client):
+        loader = self.hydra_context.config_loader
+        for line in write_results(loader, self.config, spec, client, self.shared):
             log.info("%s", line)
         log.info("study %r: MLflow run %s ended %s", spec.name, study.run_id, study.status)
         log.info("open it: `make ui`, then %s", study.url)
@@ -109,7 +113,7 @@ class StudySweeper(Sweeper):
     def _rounds(self, client, experiment: str, spec: StudySpec, base: list[str], study):
         while True:
             runs = ledger.job_runs(client, experiment, spec)
-            scores = ledger.finished_scores(runs, spec)
+            scores = ledger.finished_scores(runs, spec) | self.reference_scores
             now = standing(spec, scores)
             hours = ledger.cpu_hours(runs, spec)
             ledger.log_standing(study, now, sum(len(v) for v in scores.values()), hours)
@@ -185,19 +189,22 @@ class StudySweeper(Sweeper):
                 )
         return list(arguments)
 
-    def _job_config(self, base: list[str], spec: StudySpec, arm: str, env: str) -> dict:
-        """The arm's resolved config on ``env`` (seed 0) as params, checked like a run's."""
-        overrides = base + list(spec.arm(arm).overrides) + [f"env={env}"]
+    def _job_config(self, base: list[str], spec: StudySpec, arm: str | None, env: str) -> dict:
+        """The arm's resolved config on ``env`` (seed 0) as params, checked like a run's;
+        ``arm=None``: what every job shares there (the command line, no arm's overrides)."""
+        arm_overrides = list(spec.arm(arm).overrides) if arm is not None else []
+        overrides = base + arm_overrides + [f"env={env}"]
+        where = f"arm {arm!r}" if arm is not None else "the study's command line"
         try:
             cfg = self.hydra_context.config_loader.load_sweep_config(self.config, overrides)
         except HydraException as e:
-            raise ConfigError(f"arm {arm!r}: {one_line_hydra_error(e, overrides)}") from None
+            raise ConfigError(f"{where}: {one_line_hydra_error(e, overrides)}") from None
         with open_dict(cfg):
             del cfg["hydra"]
         try:
             validate(cfg)
         except ConfigError as e:
-            raise ConfigError(f"arm {arm!r} on {env}: {e}") from None
+            raise ConfigError(f"{where} on {env}: {e}") from None
         return tracking.flatten(shareable(cfg))
 
     def _say_design(self, spec: StudySpec, design: Design) -> None:

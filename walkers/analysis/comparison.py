@@ -38,6 +38,12 @@ from walkers.analysis.arms import (
     unknown_key_hint,
 )
 from walkers.analysis.power import pair_power
+from walkers.analysis.references import (
+    check_like_for_like,
+    load_references,
+    provenance,
+    store_settings,
+)
 from walkers.analysis.report import verdict, write_report
 from walkers.analysis.results import (
     AlgoResult,
@@ -181,9 +187,10 @@ def _check_group_by(group_by: list[str], runs: list, experiment: str) -> None:
             )
 
 
-def compare(cfg: DictConfig) -> tuple[Comparison, Path, str | None]:
-    """Build the comparison ``cfg`` asks for, write the report; returns it, its dir, a UI link."""
-    comparison, client = build_comparison(cfg)
+def compare(cfg: DictConfig, beside: dict | None = None) -> tuple[Comparison, Path, str | None]:
+    """Build the comparison ``cfg`` asks for, write the report; returns it, its dir, a UI link.
+    ``beside``: env id -> the settings references are held to (see :func:`build_comparison`)."""
+    comparison, client = build_comparison(cfg, beside)
     out = Path(cfg.out)
     return comparison, out, publish(comparison, client, cfg, out)
 
@@ -197,8 +204,11 @@ def publish(comparison: Comparison, client, cfg: DictConfig, out: Path) -> str |
     return _log_report(client, cfg, comparison, files) if cfg.log_report else None
 
 
-def build_comparison(cfg: DictConfig):
-    """The comparison ``cfg`` asks for (arms as the report forms them), and the store's client."""
+def build_comparison(cfg: DictConfig, beside: dict | None = None):
+    """The comparison ``cfg`` asks for (arms as the report forms them), and the store's client.
+
+    ``beside``: env id -> the params reference arms are held to there (a study's shared
+    settings); by default the settings every store run on the env shares."""
     _check(cfg)
     client = tracking.connect(cfg.tracking.uri)
     experiment = client.get_experiment_by_name(cfg.tracking.experiment)
@@ -211,11 +221,24 @@ def build_comparison(cfg: DictConfig):
     algos = list(cfg.algos)
     group_by = parse_group_by(cfg.group_by)
     runs = tracking.search_runs(client, experiment.experiment_id)
+    references = load_references(cfg.get("reference") or [])
+    mine, budget = store_settings(runs, cfg.env.id, cfg.total_steps)
+    if beside and cfg.env.id in beside:
+        mine = beside[cfg.env.id]
+    for reference in references:
+        check_like_for_like(reference, cfg.env.id, cfg.score, mine, budget)
+    source_of = {r.info.run_id: client for r in runs}
+    for reference in references:
+        source_of |= {r.info.run_id: reference for r in reference.runs}
+        runs = runs + reference.runs
     _check_group_by(group_by, runs, cfg.tracking.experiment)
     chosen, budgets, notes = select_runs(
         runs, cfg.env.id, algos, cfg.total_steps, cfg.gradient_steps, cfg.dataset
     )
-    loaded = load_seed_runs(client, chosen, cfg.env.threshold)
+    loaded = {}
+    for source in {id(s): s for s in source_of.values()}.values():
+        mine = [r for r in chosen if source_of[r.info.run_id] is source]
+        loaded |= load_seed_runs(source, mine, cfg.env.threshold)
     notes += [
         f"run {r.info.run_id} ({r.data.tags.get('algo')}, seed {r.data.tags.get('seed')}) "
         f"logged no {CURVE_METRIC}"
@@ -256,7 +279,20 @@ def build_comparison(cfg: DictConfig):
     comparison.group_by = group_by
     comparison.splits = splits
     comparison.published = published_figures(cfg.env, list(dict.fromkeys(a.algo for a in arms)))
+    comparison.references = [
+        provenance(ref, arms_of) for ref in references if (arms_of := _arms_from(ref, arms))
+    ]
     return comparison, client
+
+
+def _arms_from(reference, arms: list[Arm]) -> dict[str, list[str]]:
+    """The arms whose runs came from ``reference``: arm name -> its run ids."""
+    ids = {r.info.run_id for r in reference.runs}
+    return {
+        arm.name: [r.info.run_id for r in arm.runs]
+        for arm in arms
+        if any(r.info.run_id in ids for r in arm.runs)
+    }
 
 
 #: MLflow's limits on a run name and a tag value.

@@ -335,6 +335,24 @@ def markdown(c: Comparison, source: str) -> str:
                 f"| {r.algo} | {run.seed} | `{run.run_id}` | {_num(s[c.score])} "
                 f"| {_num(s['final/auc'])} | {_steps(s['final/steps_to_threshold'], r.x_axis)} |"
             )
+    if c.references:
+        out += ["", "## Arms from references", ""]
+        out += [
+            "These arms were not run for this report: their seeds come from results bundles, "
+            "checked like for like (env, evaluation protocol, budget, and the update's "
+            "fingerprint under today's code).",
+            "",
+            "| bundle | arms | runs | from | commits | packages | devices | CPU-hours |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
+        for ref in c.references:
+            hours = "" if ref["cpu_hours"] is None else f"{ref['cpu_hours']:.3g}"
+            out.append(
+                f"| `{ref['path']}` | {', '.join(ref['arms'])} | {ref['runs']} "
+                f"| experiment {ref['experiment']!r}, {ref['selection']} "
+                f"| {', '.join(c[:10] for c in ref['commits'])} | {'; '.join(ref['packages'])} "
+                f"| {', '.join(ref['devices'])} | {hours} |"
+            )
     if c.left_out:
         out += ["", "## Left out", ""] + [f"- {note}" for note in c.left_out]
     return "\n".join(out) + "\n"

@@ -201,6 +201,7 @@ class Comparison:
     group_by: list[str] = field(default_factory=list)  # the study's keys; []: by algorithm
     splits: list[str] = field(default_factory=list)  # groups of several configurations
     published: list[dict] = field(default_factory=list)  # reference figures (conf/env/*.yaml)
+    references: list[dict] = field(default_factory=list)  # bundles arms came from (provenance)
 
     def as_dict(self) -> dict:
         return {
@@ -230,4 +231,5 @@ class Comparison:
             "split": self.splits,
             "published": self.published,
             "published_caveat": PUBLISHED_CAVEAT if self.published else None,
+            "references": self.references,
         }

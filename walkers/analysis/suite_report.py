@@ -60,7 +60,7 @@ def env_config(name: str) -> DictConfig:
     return env
 
 
-def compare_suite(cfg: DictConfig) -> tuple[str, Path]:
+def compare_suite(cfg: DictConfig, beside: dict | None = None) -> tuple[str, Path]:
     """Each env's comparison and report, then the suite's report; returns its verdict and dir."""
     if len(cfg.envs) < 2:
         raise ConfigError(f"envs={list(cfg.envs)} is not allowed: two or more conf/env names")
@@ -72,7 +72,7 @@ def compare_suite(cfg: DictConfig) -> tuple[str, Path]:
         one = cfg.copy()
         one.env = env
         one.out = str(Path(cfg.out).parent / env.id)
-        comparisons[name] = compare(one)[0]
+        comparisons[name] = compare(one, beside)[0]
         tasks[name] = Task(name, env.scores.random, env.scores.reference)
     out = Path(cfg.out).parent / "suite"
     return write_suite(comparisons, tasks, cfg, out, kind="env"), out

@@ -37,11 +37,11 @@ import shutil
 import tempfile
 import time
 import zlib
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
-from mlflow.entities import Metric, Param, RunTag
+from mlflow.entities import Metric, Param, Run, RunData, RunInfo, RunTag
 
 from walkers.errors import ConfigError
 from walkers.tracking.client import get_or_create_experiment, search_runs, tags_equal
@@ -60,6 +60,8 @@ IMPORTED_FROM_TAG = "walkers.imported_from"
 #: Tag of a run whose import is under way (removed when it completes; an import interrupted by
 #: kill -9 leaves it, and the next import deletes that run and imports it again).
 IMPORTING_TAG = "walkers.importing"
+#: Tag: the update's fingerprint a bundle carried for a run (kept when it travels on).
+FINGERPRINT_TAG = "walkers.update_fingerprint"
 #: The artifacts every run carries in its bundle (small, text); checkpoints only on request.
 CONFIG_ARTIFACT = "config.yaml"
 CHECKPOINTS = "checkpoints"
@@ -120,12 +122,14 @@ def export_runs(
     selection: str,
     checkpoints: bool = False,
     replace: bool = False,
+    fingerprint: Callable[[dict, str | None], list[float] | None] | None = None,
 ) -> Exported:
     """Write ``runs`` (of ``experiment``) as a bundle in ``out``: a new or empty folder, or with
     ``replace`` an earlier bundle (a study's, written again when it ends again).
 
     Written beside ``out`` first and renamed into place: an export that fails or is stopped
-    leaves no half-written bundle."""
+    leaves no half-written bundle. ``fingerprint(tags, config)``: the update's fingerprint of a
+    run (:mod:`walkers.agents.fingerprint`), kept with it where the run has none yet."""
     out = Path(out)
     if replace and (out / RUNS_FILE).is_file():
         pass  # swapped below, once the new one is whole
@@ -138,7 +142,7 @@ def export_runs(
     ):
         staging = Path(tmp) / "bundle"
         staging.mkdir()
-        records = [_run_record(client, run, staging, checkpoints) for run in runs]
+        records = [_run_record(client, run, staging, checkpoints, fingerprint) for run in runs]
         document = {
             "format": FORMAT,
             "version": VERSION,
@@ -169,8 +173,10 @@ def _no_progress_bars():
             os.environ[_PROGRESS_BAR] = before
 
 
-def _run_record(client, run, staging: Path, checkpoints: bool) -> dict:
+def _run_record(client, run, staging: Path, checkpoints: bool, fingerprint) -> dict:
     info, data = run.info, run.data
+    config = _text_artifact(client, info.run_id, CONFIG_ARTIFACT)
+    known = data.tags.get(FINGERPRINT_TAG)
     record = {
         "origin": _origin(run),
         "run_name": info.run_name,
@@ -180,7 +186,10 @@ def _run_record(client, run, staging: Path, checkpoints: bool) -> dict:
         "params": dict(data.params),
         "tags": dict(data.tags),
         "metrics": {key: _history(client, info.run_id, key) for key in sorted(data.metrics)},
-        "config": _text_artifact(client, info.run_id, CONFIG_ARTIFACT),
+        "config": config,
+        "fingerprint": json.loads(known)
+        if known
+        else fingerprint and fingerprint(data.tags, config),
         "artifacts": [],
     }
     if checkpoints:
@@ -337,6 +346,8 @@ def _import_run(client, experiment_id: str, record: dict, by_origin: dict, docum
         else:  # its parent did not travel: a flat run rather than a dangling link
             del tags["mlflow.parentRunId"]
     tags |= {ORIGIN_TAG: record["origin"], IMPORTED_FROM_TAG: Path(document["root"]).name}
+    if record.get("fingerprint"):
+        tags[FINGERPRINT_TAG] = json.dumps(record["fingerprint"])
     run = client.create_run(
         experiment_id,
         start_time=record["start_time"],
@@ -377,3 +388,73 @@ def _import_run(client, experiment_id: str, record: dict, by_origin: dict, docum
 def _chunks(items: list, size: int) -> Iterable[list]:
     for i in range(0, len(items), size):
         yield items[i : i + size]
+
+
+# --- a bundle read as a store ------------------------------------------------------------------
+class BundleRuns:
+    """A bundle's runs as MLflow run entities, and their metric histories, read without a
+    store: what ``walkers.compare`` takes a reference arm from. Each run's id is its origin."""
+
+    def __init__(self, path: Path, label_key: str | None = None, arm: str | None = None) -> None:
+        """``label_key``: a param every run gets, valued the bundle's name (what keeps its
+        runs apart from a store's runs of the same configuration); ``arm``: only the runs of
+        that arm of the study that made the bundle (job keys ``ab/<study>/<arm>/...``)."""
+        self.path, self.arm = Path(path), arm
+        self.document = read_bundle(self.path)
+        records = [r for r in self.document["runs"] if arm is None or _study_arm(r) == arm]
+        if arm is not None and not records:
+            raise ConfigError(f"bundle={str(path)!r} holds no run of a study arm {arm!r}")
+        self.records = {record["origin"]: record for record in records}
+        label = {label_key: self.name} if label_key else {}
+        self.runs = [_as_run(record, label) for record in records]
+
+    @property
+    def name(self) -> str:
+        folder = self.path.name if self.path.is_dir() else self.path.parent.name
+        return folder + (f"#{self.arm}" if self.arm else "")
+
+    def get_metric_history(self, run_id: str, key: str) -> list[Metric]:
+        return [
+            Metric(key, float(value), int(at), int(step))
+            for step, value, at in zip(
+                *(self.records[run_id]["metrics"].get(key, {}).get(c, []) for c in COLUMNS),
+                strict=True,
+            )
+        ]
+
+
+COLUMNS = ("step", "value", "time")
+
+
+def _study_arm(record: dict) -> str | None:
+    """The arm of the study that made a run (its job key ``ab/<study>/<arm>/<env>/<seed>``)."""
+    parts = record["tags"].get(JOB_KEY_TAG, "").split("/")
+    return parts[2] if len(parts) == 5 and parts[0] == "ab" else None
+
+
+def _as_run(record: dict, extra_params: dict[str, str]) -> Run:
+    latest = []
+    for key, history in record["metrics"].items():
+        if history["step"]:
+            i = max(
+                range(len(history["step"])), key=lambda j: (history["step"][j], history["time"][j])
+            )
+            latest.append(
+                Metric(key, float(history["value"][i]), history["time"][i], history["step"][i])
+            )
+    info = RunInfo(
+        run_id=record["origin"],
+        experiment_id="bundle",
+        user_id="",
+        status=record["status"],
+        start_time=record["start_time"],
+        end_time=record["end_time"],
+        lifecycle_stage="active",
+        run_name=record["run_name"],
+    )
+    data = RunData(
+        metrics=latest,
+        params=[Param(k, v) for k, v in (record["params"] | extra_params).items()],
+        tags=[RunTag(k, v) for k, v in record["tags"].items()],
+    )
+    return Run(info, data)

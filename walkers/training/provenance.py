@@ -7,13 +7,19 @@ from __future__ import annotations
 import socket
 import subprocess
 import sys
+from importlib import metadata
 
 from omegaconf import DictConfig, OmegaConf
 
 from walkers import PROJECT_ROOT, tracking
+from walkers.agents.fingerprint import CODE_DIGEST_TAG, code_digest
 from walkers.training.evaluation import offline_references
 from walkers.tuning.studies import redacted
 
+#: Tag: the versions of the packages that compute a run (:data:`PACKAGES`).
+PACKAGES_TAG = "walkers.packages"
+PACKAGES = ("walkers", "torch", "numpy", "gymnasium", "mujoco", "box2d", "stable-baselines3",
+            "sb3-contrib", "mlflow")  # fmt: skip
 #: Tag: the machine (and Ray node) that trains the run; a resumed run: the latest one.
 WORKER_TAG = "walkers.worker"
 #: Tags of a population member's run: the population's size, the member's place in it.
@@ -30,6 +36,8 @@ def new_run_tags(cfg: DictConfig, x_axis: str, data=None) -> dict[str, str]:
     run's dataset."""
     commit = git_commit()
     tags = {
+        CODE_DIGEST_TAG: code_digest(),
+        PACKAGES_TAG: package_versions(),
         "algo": cfg.algo.name,
         "env": cfg.env.id,
         "seed": str(cfg.seed),
@@ -44,6 +52,17 @@ def new_run_tags(cfg: DictConfig, x_axis: str, data=None) -> dict[str, str]:
     if cfg.job_key:
         tags[tracking.JOB_KEY_TAG] = cfg.job_key
     return tags
+
+
+def package_versions() -> str:
+    """The versions of the packages a run's numbers depend on, in one line."""
+    versions = []
+    for name in PACKAGES:
+        try:
+            versions.append(f"{name}=={metadata.version(name)}")
+        except metadata.PackageNotFoundError:
+            continue
+    return " ".join(versions)
 
 
 def run_name(cfg: DictConfig) -> str:

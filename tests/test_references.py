@@ -1,0 +1,142 @@
+"""Reference arms (``walkers.compare reference=[bundle]``): seeds from a bundle compared without
+being rerun, on real tiny runs in two real stores, and the references that are not like for like
+refused in one line."""
+
+from __future__ import annotations
+
+import gzip
+import json
+import shutil
+
+import pytest
+
+from tests.conftest import compose_cfg, new_store, one_line_error, run_cli
+from walkers.analysis.comparison import build_comparison
+from walkers.errors import ConfigError
+from walkers.tracking import bundles
+
+TINY = [
+    "env=pendulum",
+    "total_steps=600",
+    "eval_every=200",
+    "eval_episodes=2",
+    "checkpoint_every=600",
+    "progress=false",
+    "tracking.experiment=ref",
+    "algo.learning_starts=200",
+    "algo.batch_size=32",
+    "seed=0,1,2",
+]
+
+
+def train(store, algo: str) -> None:
+    result = run_cli(["-m", f"algo={algo}", *TINY, *store["overrides"]], cwd=store["path"])
+    assert result.returncode == 0, result.stderr[-3000:]
+
+
+def compare(store, *args: str, out: str = "report"):
+    return run_cli(
+        ["env=pendulum", "tracking.experiment=ref", f"out={store['path'] / out}",
+         "log_report=false", *args, *store["overrides"]],
+        cwd=store["path"],
+        module="walkers.compare",
+    )  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def stores(tmp_path_factory):
+    """TD3's seeds trained in one store and exported; SAC's trained in another."""
+    theirs = new_store(tmp_path_factory.mktemp("theirs"))
+    train(theirs, "td3")
+    bundle = theirs["path"] / "td3_bundle"
+    done = run_cli(
+        ["tracking.experiment=ref", f"out={bundle}", f"tracking.uri={theirs['uri']}"],
+        cwd=theirs["path"],
+        module="walkers.export",
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    ours = new_store(tmp_path_factory.mktemp("ours"))
+    train(ours, "sac")
+    return theirs, ours, bundle
+
+
+def test_a_reference_arm_is_compared_without_being_rerun(stores):
+    theirs, ours, bundle = stores
+    result = compare(ours, f"reference=[{bundle}]")
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "seeds: sac 3, td3 3" in result.stdout  # TD3 never ran in this store
+    report = (ours["path"] / "report" / "report.md").read_text()
+    assert "## Arms from references" in report
+    assert f"| `{bundle}` | td3 | 3 | experiment 'ref'" in report
+    # the reference arm's statistics are those of its own store's report, to the digit
+    alone = compare(theirs, out="alone")
+    assert alone.returncode == 0, alone.stderr[-2000:]
+    here = json.loads((ours["path"] / "report" / "summary.json").read_text())["algos"]["td3"]
+    there = json.loads((theirs["path"] / "alone" / "summary.json").read_text())["algos"]["td3"]
+    assert here == there
+
+
+def _edited(bundle, tmp_path, change) -> str:
+    copy = tmp_path / "td3_bundle"
+    shutil.copytree(bundle, copy)
+    with gzip.open(copy / bundles.RUNS_FILE, "rt") as f:
+        document = json.load(f)
+    for record in document["runs"]:
+        change(record)
+    with gzip.open(copy / bundles.RUNS_FILE, "wt") as f:
+        json.dump(document, f)
+    return str(copy)
+
+
+def test_a_reference_trained_by_another_update_is_refused_in_one_line(stores, tmp_path):
+    _, ours, bundle = stores
+
+    def other_update(record):
+        record["fingerprint"] = [x * 1.1 + 0.01 for x in record["fingerprint"]]
+
+    edited = _edited(bundle, tmp_path, other_update)
+    line = one_line_error(compare(ours, f"reference=[{edited}]", out="refused"))
+    assert "reference 'td3_bundle' is not like for like: run " in line
+    assert "was trained by another update than today's td3 (number 0: " in line, line
+    assert not (ours["path"] / "refused").exists()
+
+
+def _set(section: str, key: str, value: str):
+    def change(record):
+        record[section][key] = value
+
+    return change
+
+
+@pytest.mark.parametrize(
+    ("change", "expected"),
+    [
+        (_set("tags", "env", "Pendulum-v0"), "its runs are of Pendulum-v0, not Pendulum-v1"),
+        (
+            _set("params", "eval_episodes", "10"),
+            "has eval_episodes=10, the runs it stands beside 2",
+        ),
+        (_set("params", "env.max_episode_steps", "100"), "has env.max_episode_steps=100, the"),
+        (_set("params", "total_steps", "1200"), "has total_steps=1200, this comparison 600"),
+        (_set("tags", "impl", "sb3"), "carries no update fingerprint"),
+    ],
+)
+def test_a_reference_that_is_not_like_for_like_is_refused(stores, tmp_path, change, expected):
+    """The checks ``walkers.compare`` runs first (in-process: the CLI case above proves the
+    line); a run without a fingerprint stands for one exported by other code than trained it."""
+    _, ours, bundle = stores
+
+    def edited(record):
+        change(record)
+        if "impl" in record["tags"] and record["tags"]["impl"] == "sb3":
+            record["fingerprint"] = None
+
+    cfg = compose_cfg(
+        [f"reference=[{_edited(bundle, tmp_path, edited)}]", "env=pendulum",
+         "tracking.experiment=ref", f"tracking.uri={ours['uri']}"],
+        config_name="compare",
+    )  # fmt: skip
+    with pytest.raises(ConfigError) as refused:
+        build_comparison(cfg)
+    assert expected in str(refused.value)
+    assert str(refused.value).startswith("reference 'td3_bundle' is not like for like")

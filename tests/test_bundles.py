@@ -253,3 +253,43 @@ def test_a_study_with_a_reference_arm_trains_only_its_other_arms(studied, tmp_pa
     assert "report: reports/ab_tiny/Pendulum-v1/report.md" in result.stdout, result.stdout[-3000:]
     report = (target["path"] / "reports/ab_tiny/Pendulum-v1/report.md").read_text()
     assert "## Arms from references" in report and f"| `{bundle}` |" in report
+
+
+def test_histories_travel_losslessly_and_share_their_axes():
+    """float32 values as float32's shortest text, doubles as doubles', NaN and infinities as
+    strings: every point comes back the same double; keys logged together share one axis."""
+    import math
+
+    import numpy as np
+    from mlflow.entities import Metric
+
+    from walkers.tracking import histories
+
+    steps, times = (
+        [0, 1000, 2000, 3000],
+        [1700000000000, 1700000000500, 1700000001900, 1700000002000],
+    )
+    loss = [float(np.float32(x)) for x in (0.1, 1e-8, 3.4e38, -2.5)]  # a tensor's values
+    ret = [-1234.5678901234567, float("nan"), float("inf"), 0.1]  # sums in float64
+    given = {
+        "loss/actor": [
+            Metric("loss/actor", v, t, s) for s, v, t in zip(steps, loss, times, strict=True)
+        ],
+        "loss/critic": [
+            Metric("loss/critic", -v, t, s) for s, v, t in zip(steps, loss, times, strict=True)
+        ],
+        "eval/return_mean": [
+            Metric("eval/return_mean", v, t, s) for s, v, t in zip(steps, ret, times, strict=True)
+        ],
+    }
+    encoded = histories.encode(given)
+    assert len(encoded["axes"]) == 1  # the three share their steps and times
+    assert (
+        encoded["series"]["loss/actor"]["float32"]
+        and "float32" not in encoded["series"]["eval/return_mean"]
+    )
+    back = histories.decode(json.loads(json.dumps(encoded)))
+    for key, points in given.items():
+        for a, b in zip(points, back[key], strict=True):
+            assert (a.step, a.timestamp) == (b.step, b.timestamp)
+            assert a.value == b.value or (math.isnan(a.value) and math.isnan(b.value))

@@ -31,7 +31,6 @@ import gzip
 import hashlib
 import json
 import logging
-import math
 import os
 import shutil
 import tempfile
@@ -44,6 +43,7 @@ from pathlib import Path
 from mlflow.entities import Metric, Param, Run, RunData, RunInfo, RunTag
 
 from walkers.errors import ConfigError
+from walkers.tracking import histories
 from walkers.tracking.client import get_or_create_experiment, search_runs, tags_equal
 from walkers.tracking.names import FINISHED, JOB_KEY_TAG, KILLED, KIND_TAG, STUDY_KIND, STUDY_TAG
 
@@ -185,7 +185,9 @@ def _run_record(client, run, staging: Path, checkpoints: bool, fingerprint) -> d
         "end_time": info.end_time,
         "params": dict(data.params),
         "tags": dict(data.tags),
-        "metrics": {key: _history(client, info.run_id, key) for key in sorted(data.metrics)},
+        "metrics": histories.encode(
+            {key: client.get_metric_history(info.run_id, key) for key in data.metrics}
+        ),
         "config": config,
         "fingerprint": json.loads(known)
         if known
@@ -195,21 +197,6 @@ def _run_record(client, run, staging: Path, checkpoints: bool, fingerprint) -> d
     if checkpoints:
         record["artifacts"] = _copy_checkpoints(client, info.run_id, staging, record["origin"])
     return record
-
-
-def _history(client, run_id: str, key: str) -> dict[str, list]:
-    """A metric's whole history, column by column (steps, values, times in ms)."""
-    points = sorted(client.get_metric_history(run_id, key), key=lambda m: (m.step, m.timestamp))
-    return {
-        "step": [m.step for m in points],
-        "value": [_number(m.value) for m in points],
-        "time": [m.timestamp for m in points],
-    }
-
-
-def _number(value: float):
-    """JSON has no NaN or infinity: they travel as strings."""
-    return value if math.isfinite(value) else repr(value)
 
 
 def _text_artifact(client, run_id: str, name: str) -> str | None:
@@ -282,14 +269,21 @@ def read_bundle(path: Path) -> dict:
                     f"bundle={str(path)!r}: {ARTIFACTS_DIR}/{record['origin']}/"
                     f"{artifact['path']} is missing or damaged (sha256): nothing imported"
                 )
+    for record in runs:
+        try:
+            record["history"] = histories.decode(record["metrics"])
+        except (KeyError, TypeError, ValueError) as e:
+            raise ConfigError(
+                f"bundle={str(path)!r}: run {record.get('origin')}'s metrics are damaged ({e}): "
+                "nothing imported"
+            ) from None
     document["root"] = str(runs_file.parent)
     return document
 
 
 def _metrics(record: dict) -> Iterable[Metric]:
-    for key, history in record["metrics"].items():
-        for step, value, at in zip(history["step"], history["value"], history["time"], strict=True):
-            yield Metric(key, float(value), int(at), int(step))
+    for points in record["history"].values():
+        yield from points
 
 
 # --- import -----------------------------------------------------------------------------------
@@ -414,16 +408,7 @@ class BundleRuns:
         return folder + (f"#{self.arm}" if self.arm else "")
 
     def get_metric_history(self, run_id: str, key: str) -> list[Metric]:
-        return [
-            Metric(key, float(value), int(at), int(step))
-            for step, value, at in zip(
-                *(self.records[run_id]["metrics"].get(key, {}).get(c, []) for c in COLUMNS),
-                strict=True,
-            )
-        ]
-
-
-COLUMNS = ("step", "value", "time")
+        return list(self.records[run_id]["history"].get(key, []))
 
 
 def _study_arm(record: dict) -> str | None:
@@ -433,15 +418,11 @@ def _study_arm(record: dict) -> str | None:
 
 
 def _as_run(record: dict, extra_params: dict[str, str]) -> Run:
-    latest = []
-    for key, history in record["metrics"].items():
-        if history["step"]:
-            i = max(
-                range(len(history["step"])), key=lambda j: (history["step"][j], history["time"][j])
-            )
-            latest.append(
-                Metric(key, float(history["value"][i]), history["time"][i], history["step"][i])
-            )
+    latest = [
+        max(points, key=lambda m: (m.step, m.timestamp))
+        for points in record["history"].values()
+        if points
+    ]
     info = RunInfo(
         run_id=record["origin"],
         experiment_id="bundle",

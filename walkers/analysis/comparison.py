@@ -199,7 +199,10 @@ def publish(comparison: Comparison, client, cfg: DictConfig, out: Path) -> str |
     """Write ``comparison``'s report to ``out`` and, with ``log_report``, log it as an MLflow
     run; returns its UI link."""
     files = write_report(
-        comparison, out, source=f"{cfg.tracking.uri}, experiment {cfg.tracking.experiment!r}"
+        comparison,
+        out,
+        source=cfg.get("source")
+        or f"{tracking.redacted_uri(cfg.tracking.uri)}, experiment {cfg.tracking.experiment!r}",
     )
     return _log_report(client, cfg, comparison, files) if cfg.log_report else None
 

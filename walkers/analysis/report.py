@@ -332,7 +332,7 @@ def markdown(c: Comparison, source: str) -> str:
         for run in r.runs:
             s = run.summary
             out.append(
-                f"| {r.algo} | {run.seed} | `{run.run_id}` | {_num(s[c.score])} "
+                f"| {r.algo} | {run.seed} | `{run.named}` | {_num(s[c.score])} "
                 f"| {_num(s['final/auc'])} | {_steps(s['final/steps_to_threshold'], r.x_axis)} |"
             )
     if c.references:

@@ -48,6 +48,13 @@ class SeedRun:
     #: return-conditioned runs (DT): the final return at each target return, by target
     final_per_target: dict[str, float] = field(default_factory=dict)
     budget: int | None = None  # its total_steps, on its x-axis
+    #: the run's id in the store it was first logged to (its own id, unless it was imported
+    #: from a bundle): what a report names it by, the same in every store it travels to
+    origin: str | None = None
+
+    @property
+    def named(self) -> str:
+        return self.origin or self.run_id
 
 
 @dataclass
@@ -134,7 +141,7 @@ class AlgoResult:
             else None,
             "behaviour_return": self.runs[0].behaviour_return,
             "behaviour_score": self.normalized(self.runs[0].behaviour_return),
-            "run_ids": [r.run_id for r in self.runs],
+            "run_ids": [r.named for r in self.runs],
             "score_mean": float(self.scores.mean()),
             "score_std": float(self.scores.std()),
             "iqm": self.iqm[0],

@@ -14,7 +14,7 @@ from walkers import tracking
 from walkers.analysis import stats
 from walkers.analysis.results import AXIS_NAMES, SeedRun
 from walkers.errors import ConfigError
-from walkers.tracking import ENV_STEPS, GRADIENT_STEPS, KIND_TAG
+from walkers.tracking import ENV_STEPS, GRADIENT_STEPS, KIND_TAG, ORIGIN_TAG
 
 CURVE_METRIC = "eval/return_mean"
 TARGET_METRIC = re.compile(r"eval/target_(.+)/return_mean")  # a DT's return at one target
@@ -174,6 +174,7 @@ def load_seed_runs(client, runs: list, threshold: float) -> dict[str, SeedRun]:
             cpu_hours=run.data.metrics.get("final/cpu_hours"),
             final_per_target=final_per_target(run.data.metrics),
             budget=_budget(run),
+            origin=run.data.tags.get(ORIGIN_TAG),
         )
     return loaded
 

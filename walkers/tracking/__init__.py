@@ -37,6 +37,7 @@ _HOMES = {
         "KIND_TAG",
         "LOGGED_THROUGH_TAG",
         "MULTIRUN_JOB_TAG",
+        "ORIGIN_TAG",
         "PRUNED_TAG",
         "STUDY_KIND",
         "STUDY_TAG",

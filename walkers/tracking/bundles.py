@@ -45,7 +45,15 @@ from mlflow.entities import Metric, Param, Run, RunData, RunInfo, RunTag
 from walkers.errors import ConfigError
 from walkers.tracking import histories
 from walkers.tracking.client import get_or_create_experiment, search_runs, tags_equal
-from walkers.tracking.names import FINISHED, JOB_KEY_TAG, KILLED, KIND_TAG, STUDY_KIND, STUDY_TAG
+from walkers.tracking.names import (
+    FINISHED,
+    JOB_KEY_TAG,
+    KILLED,
+    KIND_TAG,
+    ORIGIN_TAG,
+    STUDY_KIND,
+    STUDY_TAG,
+)
 
 log = logging.getLogger("walkers")
 
@@ -53,8 +61,6 @@ FORMAT = "walkers-bundle"
 VERSION = 1
 RUNS_FILE = "runs.json.gz"
 ARTIFACTS_DIR = "artifacts"
-#: Tag: the run id in the store a run was first logged to (set on every imported copy).
-ORIGIN_TAG = "walkers.origin"
 #: Tag: the bundle an imported run came from.
 IMPORTED_FROM_TAG = "walkers.imported_from"
 #: Tag of a run whose import is under way (removed when it completes; an import interrupted by

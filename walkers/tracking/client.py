@@ -25,6 +25,11 @@ from walkers.interrupts import shielded
 
 log = logging.getLogger("walkers.tracking")
 
+#: MLflow's INFO lines that say nothing a user acts on (a new sqlite store's schema, the system
+#: metrics monitor starting and stopping, four lines a run): its warnings and errors still show.
+for _chatty in ("mlflow.store.db.utils", "mlflow.system_metrics", "alembic"):
+    logging.getLogger(_chatty).setLevel(logging.WARNING)
+
 #: MLflow's HTTP retry settings for a tracking server that is down (restarting): a few quick
 #: retries, then the metrics wait for the next flush (Tracker.flush keeps them). A user's own
 #: settings of these variables win.

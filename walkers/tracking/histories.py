@@ -29,7 +29,8 @@ def encode(histories: Mapping[str, Sequence[Metric]]) -> dict:
         if axis not in axes:
             axes.append(axis)
         values = [m.value for m in points]
-        single = all(math.isfinite(v) and float(np.float32(v)) == v for v in values)
+        with np.errstate(over="ignore"):  # a double beyond float32's range is no float32
+            single = all(math.isfinite(v) and float(np.float32(v)) == v for v in values)
         series[key] = {
             "axis": axes.index(axis),
             "value": [float(str(np.float32(v))) for v in values] if single else _doubles(values),

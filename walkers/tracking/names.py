@@ -32,3 +32,5 @@ LOGGED_THROUGH_TAG = "walkers.logged_through"
 #: Tags of an A/B study's own run: ``walkers.kind=ab`` and ``walkers.ab=<study name>``; its jobs'
 #: runs nest under it (``mlflow.parentRunId``).
 STUDY_KIND, STUDY_TAG = "ab", "walkers.ab"
+#: Tag: the run id in the store a run was first logged to (set on every copy a bundle imports).
+ORIGIN_TAG = "walkers.origin"

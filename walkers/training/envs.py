@@ -7,10 +7,15 @@ environment's own return. Evaluation envs get no shaping at all.
 
 from __future__ import annotations
 
+import logging
+
 import gymnasium as gym
 import numpy as np
 
 from walkers.errors import ConfigError
+
+#: PyOpenGL (MuJoCo's renderer) says at INFO that an optional accelerator is not installed.
+logging.getLogger("OpenGL").setLevel(logging.WARNING)
 
 
 class FallPenaltyWrapper(gym.Wrapper):

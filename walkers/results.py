@@ -1,0 +1,80 @@
+"""``python -m walkers.results NAME``: a results page (``results/NAME/report/``) written from its
+bundle by ``walkers.compare``, never by hand, so that its numbers cannot drift from its runs.
+
+``results/NAME/`` holds ``bundle/`` (the runs: :mod:`walkers.tracking.bundles`), ``page.yaml``
+(what the page is: its title, the budget reached, the machine and command that made it, and the
+``walkers.compare`` overrides that make its report) and ``report/``, which this command writes
+anew: the bundle is imported into a temporary store and compared there.
+
+    python -m walkers.results tiny          # or: make results
+"""
+
+from __future__ import annotations
+
+import shutil
+import sys
+import tempfile
+from pathlib import Path
+
+import yaml
+from hydra import compose, initialize_config_dir
+
+from walkers import CONF_DIR, PROJECT_ROOT, tracking
+from walkers.analysis.comparison import compare
+from walkers.analysis.suite_report import compare_suite
+from walkers.errors import ConfigError
+from walkers.tracking import bundles
+
+RESULTS_DIR = PROJECT_ROOT / "results"
+
+
+def pages() -> list[str]:
+    return sorted(p.parent.name for p in RESULTS_DIR.glob("*/page.yaml"))
+
+
+def write_page(name: str, out: Path | None = None) -> Path:
+    """Write ``results/NAME/report`` (or ``out``) from the bundle; returns the report's folder."""
+    folder = RESULTS_DIR / name
+    if not (folder / "page.yaml").is_file():
+        raise ConfigError(f"results={name!r} is not allowed: one of {', '.join(pages())}")
+    page = yaml.safe_load((folder / "page.yaml").read_text())
+    out = out or folder / "report"
+    with tempfile.TemporaryDirectory() as tmp:
+        uri = f"sqlite:///{Path(tmp) / 'mlflow.db'}"
+        client = tracking.connect(uri)
+        document = bundles.read_bundle(folder / "bundle")
+        bundles.import_bundle(client, folder / "bundle")
+        experiment = document["source"]["experiment"]
+        overrides = [
+            *page["compare"],
+            f"tracking.uri={uri}",
+            f"tracking.experiment={experiment}",
+            f"work_dir={Path(tmp) / 'work'}",
+            f"out={out / '${env.id}'}",
+            f"source='results/{name}/bundle (experiment {experiment})'",
+            "log_report=false",
+        ]
+        with initialize_config_dir(config_dir=str(CONF_DIR)):
+            cfg = compose("compare", overrides=overrides)
+        if out.exists():
+            shutil.rmtree(out)
+        if cfg.envs:
+            compare_suite(cfg)
+        else:
+            compare(cfg)
+    return out
+
+
+def main(argv: list[str]) -> int:
+    names = argv or pages()
+    try:
+        for name in names:
+            print(f"results/{name}: {write_page(name)}")
+    except ConfigError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

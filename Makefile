@@ -93,6 +93,9 @@ bench-sequential: $(STAMP)  ## the A/B study's stopping rule by simulation: fami
 bench-scale: $(STAMP)  ## a seed study through joblib vs a loopback Ray cluster of 1 and 2 workers; the study and a sweep with N workers on paper
 	$(PY) benchmarks/bench_scale.py $(ARGS)
 
+results: $(STAMP)  ## write every results/<page>/report anew from its bundle (ARGS="tiny" for one page)
+	$(PY) -m walkers.results $(ARGS)
+
 menus: $(STAMP)  ## rewrite conf/algo/*.yaml from the hyperparameters declared in walkers/agents/declarations/schemas.py, and conf/train.yaml's run settings from walkers/training/settings.py
 	$(PY) -m walkers.agents.declarations.menus
 	$(PY) -m walkers.training.settings
@@ -112,4 +115,4 @@ clean:  ## remove run outputs (mlflow.db, mlartifacts/, outputs/, multirun/, .wa
 	rm -rf mlflow.db mlruns mlartifacts outputs multirun .walkers reports .pytest_cache .ruff_cache
 	find . -name __pycache__ -type d -prune -not -path './$(VENV)/*' -exec rm -rf {} +
 
-.PHONY: help install train ab ab-all study offline compare plan dashboard bench-sequential ui-check test test-slow test-faults test-cluster chaos stack bench bench-throughput bench-dt bench-learning bench-scale menus lint ui clean
+.PHONY: help install train ab ab-all study offline compare plan results dashboard bench-sequential ui-check test test-slow test-faults test-cluster chaos stack bench bench-throughput bench-dt bench-learning bench-scale menus lint ui clean

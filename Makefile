@@ -18,11 +18,12 @@ BENCH_EXPERIMENT ?= bench_learning_$(BENCH_ENV)
 help:  ## list the make targets
 	@grep -hE '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk 'BEGIN {FS = ":.*## "}; {printf "  make %-16s %s\n", $$1, $$2}'
 
+# Quiet: errors only (pip's -qq also silences the build backend's notes on editable installs).
 $(STAMP): pyproject.toml
-	$(PYTHON) -m venv $(VENV)
-	$(VENV)/bin/pip install --quiet --upgrade pip
-	$(VENV)/bin/pip install --quiet -e '.[dev]'
-	touch $(STAMP)
+	@$(PYTHON) -m venv $(VENV)
+	@$(VENV)/bin/pip install -qq --upgrade pip
+	@$(VENV)/bin/pip install -qq -e '.[dev]'
+	@touch $(STAMP)
 
 install: $(STAMP)  ## create .venv and install walkers with pinned dependencies
 

@@ -62,7 +62,7 @@ test-slow: $(STAMP)  ## the long end-to-end tests (marker `slow`): algorithms le
 test-faults: $(STAMP)  ## the fault tests: kill -9 of a run and of a study's driver, SIGTERM to a process group, a tracking server that dies mid-run, a resume that cannot reopen its run (a few minutes; CI runs it after `make test`)
 	$(PY) -m pytest -q -n auto --dist loadscope --durations=5 -m faults $(ARGS)
 
-ui-check: $(STAMP)  ## the links walkers prints open MLflow's training view, in a real headless Chromium (installs Debian's chromium if missing)
+ui-check: $(STAMP)  ## the links walkers prints open MLflow's training view, and the docs site renders, in a real headless Chromium (installs Debian's chromium if missing)
 	@command -v chromium >/dev/null || (apt-get update -qq && apt-get install -y -qq chromium >/dev/null)
 	$(PY) -m pytest -q -m browser $(ARGS)
 
@@ -94,6 +94,10 @@ bench-sequential: $(STAMP)  ## the A/B study's stopping rule by simulation: fami
 bench-scale: $(STAMP)  ## a seed study through joblib vs a loopback Ray cluster of 1 and 2 workers; the study and a sweep with N workers on paper
 	$(PY) benchmarks/bench_scale.py $(ARGS)
 
+docs: $(STAMP)  ## the documentation site (MkDocs, Material) with --strict into site/: a broken link or a missing page fails; its results pages from results/
+	$(PY) -m walkers.results --docs docs >/dev/null
+	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict -q
+
 results: $(STAMP)  ## write every results/<page>/report anew from its bundle (ARGS="tiny" for one page)
 	$(PY) -m walkers.results $(ARGS)
 
@@ -116,4 +120,4 @@ clean:  ## remove run outputs (mlflow.db, mlartifacts/, outputs/, multirun/, .wa
 	rm -rf mlflow.db mlruns mlartifacts outputs multirun .walkers reports .pytest_cache .ruff_cache
 	find . -name __pycache__ -type d -prune -not -path './$(VENV)/*' -exec rm -rf {} +
 
-.PHONY: help install train ab ab-all study offline compare plan results dashboard bench-sequential ui-check test test-slow test-faults test-cluster chaos stack bench bench-throughput bench-dt bench-learning bench-scale menus lint ui clean
+.PHONY: help install train ab ab-all study offline compare plan results docs dashboard bench-sequential ui-check test test-slow test-faults test-cluster chaos stack bench bench-throughput bench-dt bench-learning bench-scale menus lint ui clean

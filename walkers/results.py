@@ -7,6 +7,7 @@ bundle by ``walkers.compare``, never by hand, so that its numbers cannot drift f
 anew: the bundle is imported into a temporary store and compared there.
 
     python -m walkers.results tiny          # or: make results
+    python -m walkers.results --docs docs   # the docs site's results pages (make docs)
 """
 
 from __future__ import annotations
@@ -65,7 +66,51 @@ def write_page(name: str, out: Path | None = None) -> Path:
     return out
 
 
+def write_docs(docs: Path) -> list[Path]:
+    """The documentation site's results section, from the committed reports: per page its
+    metadata (``page.yaml``) and each of its reports with their plots, and an index."""
+    root = Path(docs) / "results"
+    if root.exists():
+        shutil.rmtree(root)
+    written, rows = [], []
+    for name in pages():
+        page = yaml.safe_load((RESULTS_DIR / name / "page.yaml").read_text())
+        reports = sorted(p.parent for p in (RESULTS_DIR / name / "report").rglob("report.md"))
+        for report in reports:
+            target = root / name / report.name
+            shutil.copytree(report, target)
+            (target / "report.md").rename(target / "index.md")
+        listed = [f"- [{r.name}]({r.name}/index.md)" for r in reports]
+        facts = [f"- **{key}**: {page[key]}" for key in FACTS if key in page]
+        text = [f"# {page['title']}", "", *facts, "", "## Reports", "", *listed, ""]
+        (root / name).mkdir(parents=True, exist_ok=True)
+        (root / name / "index.md").write_text("\n".join(text))
+        written.append(root / name / "index.md")
+        rows.append(f"| [{name}]({name}/index.md) | {page['title']} | {page.get('budget', '')} |")
+    index = [
+        "# Results",
+        "",
+        "Each page is written from its bundle in `results/` by `python -m walkers.results` "
+        "(`make results`), never by hand; `tests/test_results.py` fails if one drifts.",
+        "",
+        "| page | what | budget reached |",
+        "|---|---|---|",
+        *rows,
+        "",
+    ]
+    (root / "index.md").write_text("\n".join(index))
+    return [root / "index.md", *written]
+
+
+#: What a results page says of itself, from its ``page.yaml``.
+FACTS = ("study", "budget", "machine", "command", "commit", "date")
+
+
 def main(argv: list[str]) -> int:
+    if argv[:1] == ["--docs"]:
+        for path in write_docs(Path(argv[1] if len(argv) > 1 else "docs")):
+            print(path)
+        return 0
     names = argv or pages()
     try:
         for name in names:

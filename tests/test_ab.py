@@ -218,6 +218,7 @@ def test_a_study_that_can_never_decide_is_refused_with_nothing_created(store):
     assert "'equal' can never be answered" in plan.stdout
 
 
+@pytest.mark.slow  # 10 jobs through two looks
 def test_a_study_whose_first_look_cannot_decide_runs_with_a_warning(store):
     """3 seeds per arm can never reach alpha 0.05 (smallest p 0.1), 5 can: the study runs its
     looks, says so in one line, and records the looks that can decide on its run."""

@@ -228,6 +228,7 @@ def test_bad_exports_are_refused(studied, args, expected):
     assert not out.exists()
 
 
+@pytest.mark.slow  # a second study, of 5 jobs
 def test_a_study_with_a_reference_arm_trains_only_its_other_arms(studied, tmp_path):
     """The study's 'long' arm declared as the bundle's: only 'short' trains, and the answer,
     the report and the refusal of a design that needs seeds the bundle lacks follow."""
@@ -293,3 +294,21 @@ def test_histories_travel_losslessly_and_share_their_axes():
         for a, b in zip(points, back[key], strict=True):
             assert (a.step, a.timestamp) == (b.step, b.timestamp)
             assert a.value == b.value or (math.isnan(a.value) and math.isnan(b.value))
+
+
+def test_an_import_killed_midway_is_cleaned_up_by_the_next(studied, tmp_path):
+    """kill -9 during an import leaves the run it was writing RUNNING and marked as importing
+    (what a killed import leaves, made in a real store): the next import deletes it and
+    imports that run whole."""
+    _, bundle, _ = studied
+    target = new_store(tmp_path)
+    client = MlflowClient(target["uri"])
+    experiment_id = client.create_experiment("ab_tiny")
+    half = client.create_run(experiment_id, tags={bundles.IMPORTING_TAG: "true"})
+    client.log_param(half.info.run_id, "algo.lr", "0.001")
+    done = ingest(target, bundle)
+    assert done.returncode == 0 and "imported 11 runs" in done.stdout, done.stderr[-2000:]
+    assert client.get_run(half.info.run_id).info.lifecycle_stage == "deleted"
+    runs = all_runs(client)
+    assert len(runs) == 11 and all(bundles.IMPORTING_TAG not in r.data.tags for r in runs)
+    assert {r.info.status for r in runs} == {"FINISHED"}

@@ -25,7 +25,7 @@ TINY = [
     "tracking.experiment=ref",
     "algo.learning_starts=200",
     "algo.batch_size=32",
-    "seed=0,1,2",
+    "seed=0,1",
 ]
 
 
@@ -64,10 +64,10 @@ def test_a_reference_arm_is_compared_without_being_rerun(stores):
     theirs, ours, bundle = stores
     result = compare(ours, f"reference=[{bundle}]")
     assert result.returncode == 0, result.stderr[-3000:]
-    assert "seeds: sac 3, td3 3" in result.stdout  # TD3 never ran in this store
+    assert "seeds: sac 2, td3 2" in result.stdout  # TD3 never ran in this store
     report = (ours["path"] / "report" / "report.md").read_text()
     assert "## Arms from references" in report
-    assert f"| `{bundle}` | td3 | 3 | experiment 'ref'" in report
+    assert f"| `{bundle}` | td3 | 2 | experiment 'ref'" in report
     # the reference arm's statistics are those of its own store's report, to the digit
     alone = compare(theirs, out="alone")
     assert alone.returncode == 0, alone.stderr[-2000:]

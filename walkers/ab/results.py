@@ -4,7 +4,8 @@ At its verdict (or its maximum seeds) a study writes the report ``walkers.compar
 env's, then the suite's over several envs: aggregates, performance profile, sample-efficiency
 curves) under ``reports/<experiment>/``, and the bundle of its runs
 (:mod:`walkers.tracking.bundles`) in ``reports/<experiment>/bundle``, replaced when the same
-command ends it again. Neither can fail the study: its answers are already on its MLflow run.
+command ends it again. Neither can fail the study (a failure is one warning line): its answers
+are already on its MLflow run.
 """
 
 from __future__ import annotations
@@ -20,7 +21,6 @@ from walkers.ab.spec import StudySpec
 from walkers.agents import fingerprint
 from walkers.analysis.comparison import compare
 from walkers.analysis.suite_report import compare_suite
-from walkers.errors import ConfigError
 from walkers.tracking import bundles
 
 log = logging.getLogger("walkers")
@@ -57,19 +57,23 @@ def write_results(
         else:
             _, out, _ = compare(cfg, beside)
         lines.append(f"report: {out / 'report.md'}")
-    except ConfigError as e:  # e.g. runs without evaluations: say so, keep the answers
+    except Exception as e:  # e.g. runs without evaluations: say so, keep the answers
         log.warning("study %r: no report: %s", spec.name, e)
-    experiment_id = client.get_experiment_by_name(experiment).experiment_id
-    runs = bundles.select_runs(client, experiment_id, spec.name, {}, [tracking.FINISHED])
-    done = bundles.export_runs(
-        client,
-        experiment,
-        runs,
-        Path("reports") / experiment / "bundle",
-        f"study={spec.name}; statuses FINISHED",
-        replace=True,
-        fingerprint=fingerprint.of_run,
-    )
+    try:
+        experiment_id = client.get_experiment_by_name(experiment).experiment_id
+        runs = bundles.select_runs(client, experiment_id, spec.name, {}, [tracking.FINISHED])
+        done = bundles.export_runs(
+            client,
+            experiment,
+            runs,
+            Path("reports") / experiment / "bundle",
+            f"study={spec.name}; statuses FINISHED",
+            replace=True,
+            fingerprint=fingerprint.of_run,
+        )
+    except Exception as e:  # a store gone away at the end: the answers are on the study's run
+        log.warning("study %r: no bundle: %s (python -m walkers.export writes it)", spec.name, e)
+        return lines
     lines.append(
         f"bundle: {done.path} ({done.runs} runs, {done.bytes / 1024:.1f} KiB; "
         f"`python -m walkers.ingest bundle={done.path}` puts them into another store)"

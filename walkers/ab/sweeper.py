@@ -103,7 +103,16 @@ class StudySweeper(Sweeper):
         for line in verdicts(final):
             log.info("%s", line)
         loader = self.hydra_context.config_loader
-        for line in write_results(loader, self.config, spec, client, self.shared):
+        try:
+            lines = write_results(loader, self.config, spec, client, self.shared)
+        except KeyboardInterrupt:  # the study has ended; only its report and bundle are cut
+            print(
+                f"interrupted: study {spec.name!r} ended {study.status}; its report and bundle "
+                "were not written (the same command writes them)",
+                file=sys.stderr,
+            )
+            sys.exit(130)
+        for line in lines:
             log.info("%s", line)
         log.info("study %r: MLflow run %s ended %s", spec.name, study.run_id, study.status)
         log.info("open it: `make ui`, then %s", study.url)

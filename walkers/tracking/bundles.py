@@ -41,6 +41,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from mlflow.entities import Metric, Param, Run, RunData, RunInfo, RunTag
+from mlflow.exceptions import MlflowException
 
 from walkers.errors import ConfigError
 from walkers.tracking import histories
@@ -209,8 +210,8 @@ def _text_artifact(client, run_id: str, name: str) -> str | None:
     with tempfile.TemporaryDirectory() as tmp:
         try:
             path = client.download_artifacts(run_id, name, tmp)
-        except Exception:  # a run that never logged it (killed while opening)
-            return None
+        except MlflowException:  # a run that never logged it (killed while opening); a store
+            return None  # that fails otherwise fails the export, not a bundle without configs
         return Path(path).read_text()
 
 
@@ -312,12 +313,12 @@ def import_bundle(client, bundle: Path, experiment: str | None = None) -> Import
     todo = [record for record in document["runs"] if record["origin"] not in by_origin]
     for record in todo:
         key = record["tags"].get(JOB_KEY_TAG)
-        there = finished_by_key.get(key) if key else None
-        if there is not None:
+        conflict = finished_by_key.get(key) if key else None
+        if conflict is not None:
             raise ConfigError(
                 f"bundle={str(bundle)!r}: run {record['origin']} ({key}) conflicts with run "
-                f"{there.info.run_id} already FINISHED in experiment {experiment!r} under the same "
-                "job key: nothing imported (import into another experiment: into=NAME)"
+                f"{conflict.info.run_id} already FINISHED in experiment {experiment!r} under the "
+                "same job key: nothing imported (import into another experiment: into=NAME)"
             )
     experiment_id = get_or_create_experiment(client, experiment)  # checked: now it may write
     # parents first, so that a job's run nests under its study's (or sweep's) imported run

@@ -13,7 +13,12 @@ import torch
 
 from tests.conftest import TINY, compose_cfg, tiny_offline_data
 from walkers.agents.base import Transition
-from walkers.agents.common.health import SKIPPED, SKIPPED_IN_A_ROW, guarded_agent_step, guarded_step
+from walkers.agents.common.health import (
+    SKIPPED,
+    SKIPPED_IN_A_ROW,
+    clip_or_skip,
+    skip_nonfinite,
+)
 from walkers.agents.dt import DecisionTransformer
 from walkers.agents.factory import build_agent, defaults_for
 from walkers.agents.ppo import PPO
@@ -31,20 +36,40 @@ def _sqrt_members(start: list[float]):
     return w, torch.optim.Adam([w], lr=0.1, fused=True)
 
 
+def _guarded_step(optimizer, member_loss) -> torch.Tensor:
+    """The step as every off-policy update writes it, the guard between backward and step."""
+    optimizer.zero_grad(set_to_none=True)
+    member_loss.sum().backward()
+    skipped = skip_nonfinite(optimizer, member_loss)
+    optimizer.step()
+    return skipped
+
+
 def test_a_finite_loss_with_an_infinite_gradient_skips_that_member_only():
     w, optimizer = _sqrt_members([0.0, 4.0])
     loss = w.squeeze(-1).sqrt()
     assert torch.isfinite(loss).all()
-    bad = guarded_step(optimizer, loss, copies=1)
+    bad = _guarded_step(optimizer, loss)
     assert bad.tolist() == [1.0, 0.0]
     assert w[0].item() == 0.0 and w[1].item() != 4.0  # member 0 untouched, member 1 stepped
 
 
 def test_a_single_agent_with_an_infinite_gradient_takes_no_step():
     w, optimizer = _sqrt_members([0.0])
-    bad = guarded_step(optimizer, w.squeeze(-1).sqrt(), copies=1)
+    bad = _guarded_step(optimizer, w.squeeze(-1).sqrt())
     assert bad.tolist() == [1.0] and w.item() == 0.0
     assert all(torch.isfinite(s).all() for s in optimizer.state[w].values())  # moments clean
+
+
+def guarded_agent_step(optimizer, loss, max_grad_norm, scheduler=None):
+    """One agent's step as PPO, REINFORCE and the Decision Transformer write it."""
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    step = clip_or_skip(optimizer, loss, max_grad_norm)
+    optimizer.step()
+    if scheduler is not None:
+        scheduler.step()
+    return step
 
 
 def test_an_agent_step_clips_like_clip_grad_norm_and_returns_the_norm_before():

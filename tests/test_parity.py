@@ -13,7 +13,7 @@ every weight, target, temperature, running statistic and Adam moment (exp_avg, e
   draws its own noise (TD3: one ``Tensor.normal_`` for the target smoothing; SAC: two
   ``Normal.rsample``, first eps for a ~ pi(.|s), then for a' ~ pi(.|s'); CrossQ: first for
   a' ~ pi(.|s'), then, on the delayed steps only, for a ~ pi(.|s)), which the test records and
-  hands to walkers through ``agent.update_noise``;
+  hands to walkers through ``agent.noise_like``, in the order the update draws;
 - PPO: one rollout (a termination, a time-limit truncation and an unfinished tail) written into
   SB3's RolloutBuffer as its collect_rollouts would and into walkers' Rollout; SB3's minibatch
   permutations (``np.random.permutation`` in ``RolloutBuffer.get``) are walkers' own.
@@ -426,7 +426,8 @@ def sb3_update(model, b: dict, monkeypatch, draw_source: tuple, reward_shift: fl
 def walkers_update(agent, b: dict, critic_noise, actor_noise) -> None:
     batch = Batch(*(b[k][None] for k in ("obs", "action", "reward", "next_obs", "terminated")))
     agent.sample = lambda: batch
-    agent.update_noise = lambda _batch: (critic_noise, actor_noise)
+    draws = iter([critic_noise, actor_noise])  # the update's draws, in its order
+    agent.noise_like = lambda _x: next(draws)
     assert agent.update(), "walkers did not update"
 
 
@@ -444,8 +445,8 @@ def td3_noise(agent, drawn):
 
 
 def sac_noise(agent, drawn):
-    """SB3 draws eps for a ~ pi(.|s) first, then for a' ~ pi(.|s'); walkers' update_noise
-    returns (critic's a', actor's a)."""
+    """SB3 draws eps for a ~ pi(.|s) first, then for a' ~ pi(.|s'); walkers' update
+    draws (critic's a', actor's a)."""
     actor_eps, next_eps = drawn
     return next_eps[None], actor_eps[None]
 
@@ -460,7 +461,7 @@ def crossq_noise(agent, drawn):
 
 
 def draws_and_noise(agent) -> tuple[tuple, Callable]:
-    """Where SB3 draws its update's random numbers, and how they become walkers' update_noise."""
+    """Where SB3 draws its update's random numbers, and how they become walkers' draws."""
     if isinstance(agent, CrossQ):
         return GAUSSIAN_DRAWS, crossq_noise
     if isinstance(agent, SAC):

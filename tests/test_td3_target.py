@@ -104,7 +104,7 @@ def targets(agent: TD3, b: Batch, noise: torch.Tensor | None) -> torch.Tensor:
     K, N = b.reward.shape
     ys = torch.empty(K, N)
     for n in range(N):
-        one = Batch(*(field[:, n : n + 1] for field in b))
+        one = Batch(*(field[:, n : n + 1] for field in b[:5]))
         eps = None if noise is None else noise[:, n : n + 1]
         losses = []
         for q in (0.0, 1.0):
@@ -160,7 +160,7 @@ def test_terminated_target_is_the_reward_truncated_bootstraps():
     buf = agent.buffer
     assert buf.terminated[:2].tolist() == [1.0, 0.0]
     rows = slice(0, 2)
-    b = Batch(*(getattr(buf, f)[rows][None] for f in Batch._fields))
+    b = Batch(*(getattr(buf, f)[rows][None] for f in Batch._fields[:5]))
     assert b.reward.shape == (1, 2) and b.obs.shape == (1, 2, 1)
 
     y = targets(agent, b, zeros_noise(b))
@@ -228,12 +228,15 @@ def test_smoothing_noise_is_clipped_in_half_ranges_and_the_action_to_the_bounds(
     close(targets(agent, b, noise) / GAMMA, [expected])
 
 
-def test_update_noise_is_a_standard_normal_shaped_like_the_actions():
-    agent = make_td3(population=2)
-    b = batch([[0.0] * 3] * 2, [[0.0] * 3] * 2, [[0.0] * 3] * 2, [[0.0] * 3] * 2, [[0.0] * 3] * 2)
-    eps, actor_noise = agent.update_noise(b)
-    assert eps.shape == b.action.shape == (2, 3, 1) and actor_noise is None
-    assert make_td3(policy_noise=0.0).update_noise(b) == (None, None)
+def test_the_update_draws_one_standard_normal_shaped_like_the_actions_and_none_without_smoothing():
+    for policy_noise, draws in ((0.2, 1), (0.0, 0)):
+        agent = make_td3(population=2, policy_noise=policy_noise)
+        for _ in range(4):
+            agent.observe_population([Transition([0.5], [0.0], 1.0, [0.5], False, False)] * 2)
+        shapes = []
+        agent.noise_like = lambda x, shapes=shapes: shapes.append(x.shape) or torch.randn_like(x)
+        assert agent.update()
+        assert shapes == [(2, 4, 1)] * draws
 
 
 # --- 3. the min of the twins --------------------------------------------------------------------
@@ -270,7 +273,7 @@ def test_population_of_two_members_are_independent():
     b1 = batch(
         [[0.0] * 3], [[0.0] * 3], [[0.5] * 3], [[-SATURATED, SATURATED, 0.0]], [[0.0, 0.0, 1.0]]
     )
-    b = Batch(*(torch.cat([f0, f1]) for f0, f1 in zip(b0, b1, strict=True)))
+    b = Batch(*(torch.cat([f0, f1]) for f0, f1 in zip(b0[:5], b1[:5], strict=True)))
     y = targets(agent, b, zeros_noise(b))
     close(y, [MEMBER0_Y, [-0.5, 0.5, 0.5]])
 

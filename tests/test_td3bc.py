@@ -74,7 +74,8 @@ def test_the_actor_loss_is_lambda_q_plus_behaviour_cloning_by_hand():
     agent = _agent(None)
     q = torch.tensor([[1.0, -3.0]], requires_grad=True)
     pi = torch.tensor([[[0.5], [0.0]]], requires_grad=True)
-    agent.policy_q1 = lambda obs: (pi, q)
+    agent.actor = lambda obs: pi
+    agent.q1 = lambda obs, action: q if action is pi else None
     action = torch.tensor([[[0.0], [1.0]]])
     b = Batch(
         torch.zeros(1, 2, 3), action, torch.zeros(1, 2), torch.zeros(1, 2, 3), torch.zeros(1, 2)
@@ -91,7 +92,8 @@ def test_the_actor_loss_is_td3s_scaled_plus_bc_and_the_critics_are_td3s():
     error to the dataset's actions; the critics' update and target are TD3's own methods."""
     agent = _agent(_dataset())
     b = agent.sample()
-    pi, q = agent.policy_q1(b.obs)
+    pi = agent.actor(b.obs)
+    q = agent.q1(b.obs, pi)
     lmbda = 2.5 / q.abs().mean(dim=-1)
     bc = ((pi - b.action) ** 2).mean(dim=(1, 2))
     expected = lmbda * TD3.actor_loss(agent, b) + bc

@@ -31,12 +31,11 @@ a slice per population member).
 from __future__ import annotations
 
 from collections.abc import Sequence
-from functools import partial
 
 import torch
 
 from walkers.agents.common.actor_critic import frozen, logged
-from walkers.agents.common.health import guarded_step
+from walkers.agents.common.health import skip_nonfinite
 from walkers.agents.common.renorm import RenormCriticEnsemble, RenormGaussianActor, batch_statistics
 from walkers.agents.sac import SoftActorCritic
 from walkers.data.replay import Batch
@@ -60,9 +59,6 @@ class CrossQ(SoftActorCritic):
         adam_betas: Sequence[float],
         **hyperparameters,
     ):
-        self.policy_delay = policy_delay
-        self.renorm = {"momentum": renorm_momentum, "warmup_steps": renorm_warmup_steps}
-        self.actor_class = partial(RenormGaussianActor, **self.renorm)
         super().__init__(
             obs_dim,
             action_low,
@@ -71,32 +67,55 @@ class CrossQ(SoftActorCritic):
             adam_betas=adam_betas,
             **hyperparameters,
         )
-
-    def build_critic(self, architecture, obs_dim, act_dim, hidden) -> RenormCriticEnsemble:
-        n = self.num_critics * self.population
-        return RenormCriticEnsemble(obs_dim, act_dim, hidden, n, **self.renorm)
+        self.policy_delay = policy_delay
+        renorm = {"momentum": renorm_momentum, "warmup_steps": renorm_warmup_steps}
+        self.actor = self.build_actor(RenormGaussianActor, **renorm)  # pi_phi
+        self.critic = self.build_critic(RenormCriticEnsemble, **renorm)  # Q_1, Q_2; no targets
+        self.actor_optimizer = self.adam(self.actor, self.actor_lr)
+        self.critic_optimizer = self.adam(self.critic, self.critic_lr)
+        self.build_temperature()
+        self.members = self.build_members(self.exploration_noise)
+        self.compile_losses()
 
     # --- learning ---------------------------------------------------------------------------------
     def update(self) -> dict[str, torch.Tensor]:
         if not self.begin_update():
             return {}
         b = self.sample()
-        target_noise, actor_noise = self.update_noise(b)
+        next_eps = self.noise_like(b.action)  # a' ~ pi(.|s'), for the target
+        eps = self.noise_like(b.action)  # a ~ pi(.|s), for the delayed steps
         alpha = self.temperature().unsqueeze(-1)  # this update's, before the temperature's step
+
         with batch_statistics(self.critic):  # the joint pass's statistics, which move
-            critic_loss, q_mean = self.critic_loss(b, target_noise, alpha)
-        critic_bad = guarded_step(self.critic_optimizer, critic_loss, self.num_critics)
+            critic_loss, q_mean = self.critic_loss(b, next_eps, alpha)
+        self.critic_optimizer.zero_grad(set_to_none=True)
+        critic_loss.sum().backward()
+        critic_skipped = skip_nonfinite(self.critic_optimizer, critic_loss, self.num_critics)
+        self.critic_optimizer.step()
         metrics = {"loss/critic": logged(critic_loss), "train/q_mean": logged(q_mean)}
-        actor_bad = None  # the delayed step's verdict, when it runs
+
+        actor_skipped = None  # the delayed step's verdict, when it runs
         if self.num_updates % self.policy_delay == 0:
             with batch_statistics(self.actor):  # the batch of s's statistics, which move
-                action, log_pi = self.actor.sample(b.obs, actor_noise)
-            metrics |= self.temperature_step(log_pi.detach(), skip=critic_bad)
+                action, log_pi = self.actor.sample(b.obs, eps)
+
+            alpha_loss = self.temperature_loss(log_pi.detach())
+            self.alpha_optimizer.zero_grad(set_to_none=True)
+            alpha_loss.sum().backward()
+            skip_nonfinite(self.alpha_optimizer, alpha_loss, also_skip=critic_skipped)
+            self.alpha_optimizer.step()
+            metrics |= self.entropy_metrics(alpha_loss, self.temperature(), log_pi.detach())
+
             with frozen(self.critic):
                 actor_loss = self.actor_loss(b.obs, action, log_pi, alpha)
-            actor_bad = guarded_step(self.actor_optimizer, actor_loss, 1, also_bad=critic_bad)
+            self.actor_optimizer.zero_grad(set_to_none=True)
+            actor_loss.sum().backward()
+            actor_skipped = skip_nonfinite(
+                self.actor_optimizer, actor_loss, also_skip=critic_skipped
+            )
+            self.actor_optimizer.step()
             metrics["loss/actor"] = logged(actor_loss)
-        return metrics | self.record_health(critic_bad, delayed_bad=actor_bad)
+        return metrics | self.record_health(critic_skipped, delayed_bad=actor_skipped)
 
     def critic_loss(
         self, b: Batch, noise: torch.Tensor, alpha: torch.Tensor

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from walkers.agents.base import Agent, Transition, resolve_device
-from walkers.agents.common.health import NonFiniteGuard, guarded_agent_step
+from walkers.agents.common.health import NonFiniteGuard, clip_or_skip
 from walkers.agents.common.transformer import (
     DecisionTransformerModel,
     autocast,
@@ -167,9 +167,13 @@ class DecisionTransformer(Agent):
             predicted = self.model(b.returns_to_go, b.obs, b.actions, b.timesteps)
         squared_error = (predicted.float() - b.actions).pow(2).mean(dim=-1)
         loss = (squared_error * b.mask).sum() / b.mask.sum()
-        step = guarded_agent_step(
-            self.optimizer, loss, max_grad_norm=self.grad_clip, scheduler=self.scheduler
-        )
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        step = clip_or_skip(self.optimizer, loss, self.grad_clip)  # NaN/inf: skipped
+        self.optimizer.step()
+        # the schedule counts updates, skipped or not (stepping it only after a taken step would
+        # need the verdict on the host, a sync)
+        self.scheduler.step()
         self.guard.record(step.skipped)  # NaN/inf: the step was skipped (the warm-up goes on)
         self.num_updates += 1
         return {

@@ -43,7 +43,7 @@ import numpy as np
 import torch
 
 from walkers.agents.base import Agent, Transition, resolve_device
-from walkers.agents.common.health import NonFiniteGuard, guarded_agent_step
+from walkers.agents.common.health import NonFiniteGuard, clip_or_skip
 from walkers.agents.common.normalization import ObservationNormalizer, RewardScaler
 from walkers.agents.common.policies import GaussianPolicy, orthogonal_mlp
 from walkers.data.rollouts import Rollout, gae
@@ -265,8 +265,11 @@ class PPO(Agent):
         entropy = dist.entropy().sum(-1).mean()
         loss = policy_loss - self.ent_coef * entropy + self.vf_coef * v_loss
 
-        step = guarded_agent_step(self.optimizer, loss, max_grad_norm=self.max_grad_norm)
-        self.guard.record(step.skipped)  # NaN/inf: this minibatch's step was skipped
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        step = clip_or_skip(self.optimizer, loss, self.max_grad_norm)  # NaN/inf: skipped
+        self.optimizer.step()
+        self.guard.record(step.skipped)
         with torch.no_grad():  # diagnostics (k3 estimator of KL(old || new), Schulman 2020)
             approx_kl = ((ratio - 1) - log_ratio).mean()
             clip_fraction = ((ratio - 1).abs() > self.clip_coef).float().mean()

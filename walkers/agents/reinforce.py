@@ -32,7 +32,7 @@ import numpy as np
 import torch
 
 from walkers.agents.base import Agent, Transition, resolve_device
-from walkers.agents.common.health import NonFiniteGuard, guarded_agent_step
+from walkers.agents.common.health import NonFiniteGuard, clip_or_skip
 from walkers.agents.common.networks import mlp
 from walkers.agents.common.policies import GaussianPolicy
 from walkers.data.rollouts import Rollout, returns_to_go
@@ -131,10 +131,16 @@ class Reinforce(Agent):
         log_prob = dist.log_prob(actions).sum(-1)
         entropy = dist.entropy().sum(-1).mean()
         loss = -(log_prob * advantages).mean() - self.entropy_coef * entropy
-        step = guarded_agent_step(self.optimizer, loss, max_grad_norm=self.max_grad_norm)
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        step = clip_or_skip(self.optimizer, loss, self.max_grad_norm)  # NaN/inf: skipped
+        self.optimizer.step()
         skipped = step.skipped
         if self.value is not None:  # the baseline's step, skipped on its own NaN/inf
-            baseline = guarded_agent_step(self.value_optimizer, value_loss)
+            self.value_optimizer.zero_grad(set_to_none=True)
+            value_loss.backward()
+            baseline = clip_or_skip(self.value_optimizer, value_loss, max_grad_norm=None)
+            self.value_optimizer.step()
             skipped = torch.maximum(skipped, baseline.skipped)
         self.guard.record(skipped)  # counted once: this update skipped a step
         metrics.update(

@@ -25,17 +25,17 @@ import numpy as np
 import torch
 
 from walkers.agents.common.actor_critic import ActorCritic, frozen, logged
-from walkers.agents.common.health import guarded_step
+from walkers.agents.common.health import skip_nonfinite
 from walkers.agents.common.networks import EnsembleGaussianActor, Temperature, soft_update
 from walkers.agents.common.noise import GaussianNoise
 from walkers.data.replay import Batch
 
 
 class SoftActorCritic(ActorCritic):
-    """The maximum-entropy actor-critic SAC and CrossQ share: the squashed Gaussian actor, its
-    exploration, the temperature and its loss. The update is each algorithm's own."""
+    """The maximum-entropy actor-critic SAC and CrossQ share: the squashed Gaussian actor's
+    exploration, the temperature (:meth:`build_temperature`) and its loss. The networks and the
+    update are each algorithm's own."""
 
-    actor_class = EnsembleGaussianActor
     num_critics = 2  # clipped double-Q
 
     def __init__(
@@ -51,19 +51,22 @@ class SoftActorCritic(ActorCritic):
         **hyperparameters,
     ):
         super().__init__(obs_dim, action_low, action_high, lr=lr, **hyperparameters)
-        act_dim = len(self.action_low)
-        self.target_entropy = -float(act_dim) if target_entropy is None else float(target_entropy)
-        self.temperature = Temperature(self.population, alpha_init).to(self.device)
-        self.alpha_optimizer = torch.optim.Adam(
-            self.temperature.parameters(), lr=alpha_lr or lr, fused=True
+        self.alpha_lr, self.alpha_init = alpha_lr or lr, alpha_init
+        self.target_entropy = (
+            -float(self.act_dim) if target_entropy is None else float(target_entropy)
         )
 
+    def build_temperature(self) -> None:
+        """alpha of every member and its own Adam (Adam's own betas, as the references)."""
+        self.temperature = Temperature(self.population, self.alpha_init).to(self.device)
+        self.alpha_optimizer = self.adam(self.temperature, self.alpha_lr, betas=(0.9, 0.999))
+
     # --- acting ---------------------------------------------------------------------------------
-    def exploration_noise(self, rng: np.random.Generator, act_dim: int) -> GaussianNoise:
+    def exploration_noise(self, rng: np.random.Generator) -> GaussianNoise:
         """The eps ~ N(0, I) of a member's policy sample, from its own exploration stream
         (walkers.seeding): a soft actor-critic explores by sampling its policy, with no added
         noise."""
-        return GaussianNoise(1.0, act_dim, rng)
+        return GaussianNoise(1.0, self.act_dim, rng)
 
     def policy(self, obs: torch.Tensor, noise: np.ndarray | None) -> np.ndarray:
         """A sample of pi(.|s) with eps = ``noise`` (exploring), else tanh(mu(s)) (greedy)."""
@@ -73,28 +76,21 @@ class SoftActorCritic(ActorCritic):
         action, _ = self.actor.sample(obs, eps)
         return action[:, 0].cpu().numpy()
 
-    # --- learning: the parts both updates use -----------------------------------------------------
-    def update_noise(self, b: Batch) -> tuple[torch.Tensor, torch.Tensor]:
-        """eps ~ N(0, I) for a' ~ pi(.|s') (the critic target) and a ~ pi(.|s) (the actor loss)."""
-        return torch.randn_like(b.action), torch.randn_like(b.action)
-
-    def temperature_step(self, log_pi: torch.Tensor, skip: torch.Tensor) -> dict:
-        """The temperature's step on J(alpha) for log pi(a|s) ``(K, N)`` of the policy's samples,
-        skipping the members in ``skip``; its metrics."""
-        alpha_loss = self.temperature_loss(log_pi)
-        guarded_step(self.alpha_optimizer, alpha_loss, 1, also_bad=skip)
-        return {
-            "loss/alpha": alpha_loss.detach(),
-            "train/alpha": self.temperature(),
-            "train/entropy": -log_pi.mean(dim=-1),
-        }
-
+    # --- learning: the temperature's loss, which both updates use --------------------------------
     def temperature_loss(self, log_pi: torch.Tensor) -> torch.Tensor:
         """J(alpha) = E[-log alpha (log pi(a|s) + H_target)] per member ``(K,)``, the log pi
         treated as constants. Its gradient -(log pi + H_target) is positive when the entropy
         -log pi is above the target, so alpha falls; below it, alpha rises."""
         log_alpha = self.temperature.log_alpha.unsqueeze(-1)
         return -(log_alpha * (log_pi + self.target_entropy).detach()).mean(dim=-1)
+
+    @staticmethod
+    def entropy_metrics(alpha_loss, alpha, log_pi) -> dict[str, torch.Tensor]:
+        return {
+            "loss/alpha": alpha_loss.detach(),
+            "train/alpha": alpha,
+            "train/entropy": -log_pi.mean(dim=-1),
+        }
 
     # --- checkpoints: the temperature is a per-member part too -----------------------------------
     def member_cuts(self, i: int) -> dict[str, slice]:
@@ -108,27 +104,50 @@ class SAC(SoftActorCritic):
 
     def __init__(self, obs_dim, action_low, action_high, **hyperparameters):
         super().__init__(obs_dim, action_low, action_high, **hyperparameters)
-        self.critic_target = self.target_of(self.critic)
+        self.actor = self.build_actor(EnsembleGaussianActor)  # pi_phi
+        self.critic = self.build_critic()  # Q_theta_1, Q_theta_2 of every member
+        self.critic_target = self.target_of(self.critic)  # theta'_1, theta'_2 (no target actor)
+        self.actor_optimizer = self.adam(self.actor, self.actor_lr)
+        self.critic_optimizer = self.adam(self.critic, self.critic_lr)
+        self.build_temperature()
+        self.members = self.build_members(self.exploration_noise)
+        self.compile_losses()
 
     # --- learning: Algorithm 1's loop body (one gradient step) -----------------------------------
     def update(self) -> dict[str, torch.Tensor]:
         if not self.begin_update():
             return {}
         b = self.sample()
-        target_noise, actor_noise = self.update_noise(b)
-        critic_loss, q_mean = self.critic_loss(b, target_noise)
-        critic_bad = guarded_step(self.critic_optimizer, critic_loss, self.num_critics)
+        next_eps = self.noise_like(b.action)  # a' ~ pi(.|s'), for the target
+        eps = self.noise_like(b.action)  # a ~ pi(.|s), for the actor's loss
+
+        critic_loss, q_mean = self.critic_loss(b, next_eps)
+        self.critic_optimizer.zero_grad(set_to_none=True)
+        critic_loss.sum().backward()
+        critic_skipped = skip_nonfinite(self.critic_optimizer, critic_loss, self.num_critics)
+        self.critic_optimizer.step()
+
         with frozen(self.critic):
-            actor_loss, log_pi = self.actor_loss(b.obs, actor_noise)
-        actor_bad = guarded_step(self.actor_optimizer, actor_loss, 1, also_bad=critic_bad)
-        temperature_metrics = self.temperature_step(log_pi, skip=actor_bad)
+            actor_loss, log_pi = self.actor_loss(b.obs, eps)
+        self.actor_optimizer.zero_grad(set_to_none=True)
+        actor_loss.sum().backward()
+        actor_skipped = skip_nonfinite(self.actor_optimizer, actor_loss, also_skip=critic_skipped)
+        self.actor_optimizer.step()
+
+        alpha_loss = self.temperature_loss(log_pi)
+        self.alpha_optimizer.zero_grad(set_to_none=True)
+        alpha_loss.sum().backward()
+        skip_nonfinite(self.alpha_optimizer, alpha_loss, also_skip=actor_skipped)
+        self.alpha_optimizer.step()
+
         soft_update(self.critic_target, self.critic, self.tau)
         metrics = {
             "loss/critic": logged(critic_loss),
             "train/q_mean": logged(q_mean),
             "loss/actor": logged(actor_loss),
+            **self.entropy_metrics(alpha_loss, self.temperature(), log_pi),
         }
-        return metrics | temperature_metrics | self.record_health(critic_bad, delayed_bad=actor_bad)
+        return metrics | self.record_health(critic_skipped, delayed_bad=actor_skipped)
 
     def critic_loss(self, b: Batch, noise: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Per member ``(K,)``: J_Q = 1/2 sum_j N^-1 sum (y - Q_j(s, a))^2 with the soft target

@@ -52,17 +52,18 @@ class TD3BC(TD3):
         normalize_states: bool,
         **td3,
     ):
-        self.alpha, self.normalize_states = float(alpha), bool(normalize_states)
-        self.dataset_size = dataset.steps if dataset is not None else 0
+        dataset_size = dataset.steps if dataset is not None else 0
         super().__init__(
             obs_dim,
             action_low,
             action_high,
             exploration_noise=0.0,
             learning_starts=0,
-            buffer_size=max(self.dataset_size, 1),
+            buffer_size=max(dataset_size, 1),
             **td3,
         )
+        self.alpha, self.normalize_states = float(alpha), bool(normalize_states)
+        self.dataset_size = dataset_size
         self.obs_mean = np.zeros(obs_dim, dtype=np.float32)
         self.obs_std = np.ones(obs_dim, dtype=np.float32)
         if dataset is not None:
@@ -87,10 +88,9 @@ class TD3BC(TD3):
             "next_obs": self.normalize(np.concatenate([e.observations[1:] for e in episodes])),
             "terminated": np.concatenate([e.terminations for e in episodes]),
         }
-        buffer = self.buffer  # loaded as a saved buffer is: full, its sampler where it is
-        data = {k: torch.as_tensor(v, dtype=torch.float32) for k, v in transitions.items()}
-        state = {"pos": 0, "size": self.dataset_size, "generator": buffer.generator.get_state()}
-        buffer.load_state_dict(state | {"data": data})
+        self.buffer.hold_dataset(
+            {k: torch.as_tensor(v, dtype=torch.float32) for k, v in transitions.items()}
+        )
 
     def normalize(self, obs: np.ndarray) -> np.ndarray:
         return (obs - self.obs_mean) / self.obs_std
@@ -108,7 +108,8 @@ class TD3BC(TD3):
         """-lambda N^-1 sum Q_1(s, pi(s)) + N^-1 sum (pi(s) - a)^2 per member ``(K,)``, lambda =
         alpha / N^-1 sum |Q_1(s, pi(s))| detached; the squared error averaged over the action's
         dimensions too (the reference's ``F.mse_loss``)."""
-        action, q_pi = self.policy_q1(b.obs)
+        action = self.actor(b.obs)
+        q_pi = self.q1(b.obs, action)
         lmbda = self.alpha / q_pi.abs().mean(dim=-1).detach()
         behaviour_cloning = (action - b.action).pow(2).mean(dim=(1, 2))
         return -lmbda * q_pi.mean(dim=-1) + behaviour_cloning
@@ -126,6 +127,5 @@ class TD3BC(TD3):
         self.obs_mean, self.obs_std = state["obs_mean"], state["obs_std"]
 
     def refill_if_lost(self, buffer_state: dict) -> None:
-        """Nothing to refill: the buffer is the dataset, reloaded by name. Loading the sampler's
-        state (a checkpoint holds no transitions) emptied its count: the transitions are there."""
-        self.buffer.pos, self.buffer.size = 0, self.dataset_size
+        """Nothing to refill: the buffer holds the dataset, reloaded by name (a checkpoint holds
+        only its sampler's state)."""

@@ -12,11 +12,15 @@ from walkers.seeding import restore_generator
 
 
 class Batch(NamedTuple):
+    """A mini-batch of transitions, and where in the buffer each came from."""
+
     obs: torch.Tensor
     action: torch.Tensor
     reward: torch.Tensor
     next_obs: torch.Tensor
     terminated: torch.Tensor  # 1.0 where the episode really ended (no bootstrap), else 0.0
+    #: the buffer rows sampled (e.g. to update their priorities), None for a made-up batch
+    index: torch.Tensor | None = None
 
 
 DATA_FIELDS = ("obs", "action", "reward", "next_obs", "terminated", "episode_end")
@@ -43,6 +47,7 @@ class ReplayBuffer:
         self.episode_end = torch.zeros(self.capacity, dtype=torch.bool, device=self.device)
         self.pos = 0
         self.size = 0
+        self.holds_dataset = False  # a fixed dataset's transitions (hold_dataset), never refilled
         self.generator = torch.Generator(device=self.device)
         self.generator.manual_seed(seed)
 
@@ -62,6 +67,15 @@ class ReplayBuffer:
         self.pos = (i + 1) % self.capacity
         self.size = min(self.size + 1, self.capacity)
 
+    def hold_dataset(self, data: dict[str, torch.Tensor]) -> None:
+        """Fill the buffer with a fixed dataset's transitions (``data``: a tensor per field of
+        :data:`DATA_FIELDS`, ``episode_end`` optional), for good: an offline agent's. A
+        checkpoint's sampler state loaded later leaves them in place."""
+        n = len(data["obs"])
+        for name, values in data.items():
+            getattr(self, name)[:n] = values.to(self.device)
+        self.pos, self.size, self.holds_dataset = 0, n, True
+
     def sample(self, batch_size: int) -> Batch:
         idx = torch.randint(
             0, self.size, (batch_size,), device=self.device, generator=self.generator
@@ -72,6 +86,7 @@ class ReplayBuffer:
             self.reward[idx],
             self.next_obs[idx],
             self.terminated[idx],
+            idx,
         )
 
     def state_dict(self, with_data: bool) -> dict:
@@ -88,7 +103,7 @@ class ReplayBuffer:
             for name, values in state["data"].items():
                 getattr(self, name)[: len(values)] = values.to(self.device)
             self.pos, self.size = state["pos"], state["size"]
-        else:  # restarted without its transitions: refill from empty
+        elif not self.holds_dataset:  # restarted without its transitions: refill from empty
             self.pos, self.size = 0, 0
 
 

@@ -11,9 +11,11 @@ Each algorithm owns its update, written in its paper's order in its own module:
 This core holds only what they share, none of it particular to one algorithm: the actor and
 critic ensembles and their Adam optimizers, the replay buffers and the uniform random warm-up,
 acting, one mini-batch per member (:meth:`ActorCritic.sample`), the NaN/inf guard's counters
-(the steps themselves go through :func:`~walkers.agents.common.health.guarded_step`), target
+(each step calls the guard itself, :func:`~walkers.agents.common.health.skip_nonfinite`), target
 networks for those that have them (:meth:`target_of`,
 :func:`~walkers.agents.common.networks.soft_update`), ``compile``, populations and checkpoints.
+The core builds nothing by itself: each algorithm's constructor builds its networks, optimizers
+and members explicitly, after setting itself up.
 
 Every network is an ensemble with a leading *member* dimension: a single agent is a population of
 one, ``population=K`` trains K independent seeds (``seed, seed + 1, ...``) with one batched
@@ -26,7 +28,7 @@ as a single agent and loading it back is :mod:`walkers.agents.common.population`
 from __future__ import annotations
 
 import copy
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 
 import numpy as np
@@ -44,12 +46,13 @@ from walkers.seeding import numpy_rng, stream_seeds
 
 
 class ActorCritic(Agent):
-    """The shared core (see the module docstring). An algorithm subclasses it with its own
-    :meth:`update`, :meth:`exploration_noise` and :meth:`policy`; it may set :attr:`actor_class`
-    and :attr:`num_critics`, build its critic (:meth:`build_critic`), add target networks
-    (:meth:`target_of`) and list its per-member parts beyond the core's (:meth:`member_cuts`)."""
+    """The shared core (see the module docstring). An algorithm subclasses it: its constructor
+    calls this one (settings and counters only: nothing is built yet), sets up its own
+    attributes, then builds its parts explicitly with :meth:`build_actor`, :meth:`build_critic`,
+    :meth:`target_of`, :meth:`adam` and :meth:`build_members`, in that order (the order of the
+    seeded initialisations), and last :meth:`compile_losses`. It writes its own :meth:`update`
+    and :meth:`policy`, and lists its per-member parts beyond the core's (:meth:`member_cuts`)."""
 
-    actor_class: type[nn.Module] = EnsembleActor  # built as (n, obs, act, hidden, low, high)
     num_critics = 2  # critics per member
     #: the methods ``compile=True`` runs through torch.compile (the losses, forward and backward)
     compiled_losses: tuple[str, ...] = ("critic_loss", "actor_loss")
@@ -80,41 +83,22 @@ class ActorCritic(Agent):
         self.device = resolve_device(device)
         self.batch_size, self.learning_starts = int(batch_size), int(learning_starts)
         self.gamma, self.tau = gamma, tau
-        self.population = int(population)
+        self.population, self.seed = int(population), seed
+        self.obs_dim = obs_dim
         self.action_low = np.asarray(action_low, dtype=np.float32)
         self.action_high = np.asarray(action_high, dtype=np.float32)
-        act_dim = len(self.action_low)
-
-        torch.manual_seed(seed)
-        self.actor = self.actor_class(
-            self.population, obs_dim, act_dim, hidden_sizes, action_low, action_high
-        ).to(self.device)
-        critic_hidden = hidden_sizes if critic_hidden_sizes is None else critic_hidden_sizes
-        # TD3's and SAC's critic architecture is "mlp"; DDPG declares the choice
-        self.critic = self.build_critic(
-            critic_architecture or "mlp", obs_dim, act_dim, critic_hidden
-        ).to(self.device)
-        betas = (0.9, 0.999) if adam_betas is None else tuple(adam_betas)
-        self.actor_optimizer = torch.optim.Adam(
-            self.actor.parameters(), lr=actor_lr or lr, betas=betas, fused=True
-        )
-        self.critic_optimizer = torch.optim.Adam(
-            self.critic.parameters(), lr=critic_lr or lr, betas=betas, fused=True
-        )
+        self.act_dim = len(self.action_low)
         self.low_t = torch.as_tensor(self.action_low, device=self.device)
         self.high_t = torch.as_tensor(self.action_high, device=self.device)
+        self.hidden_sizes = list(hidden_sizes)
+        self.critic_hidden_sizes = list(critic_hidden_sizes or hidden_sizes)
+        # TD3's and SAC's critic architecture is "mlp"; DDPG declares the choice
+        self.critic_architecture = critic_architecture or "mlp"
+        self.actor_lr, self.critic_lr = actor_lr or lr, critic_lr or lr
+        self.adam_betas = (0.9, 0.999) if adam_betas is None else tuple(adam_betas)
+        self.buffer_size, self.compile = int(buffer_size), compile
 
-        self.members = []
-        for member_seed in range(seed, seed + self.population):
-            rng = numpy_rng(member_seed, "exploration")
-            replay_seed = stream_seeds(member_seed, "replay")[0]
-            self.members.append(
-                Member(
-                    rng,
-                    self.exploration_noise(rng, act_dim),
-                    ReplayBuffer(buffer_size, obs_dim, act_dim, self.device, replay_seed),
-                )
-            )
+        torch.manual_seed(seed)  # the networks the subclass builds next draw from here
         self.steps = 0  # transitions observed (per member)
         self.num_updates = 0  # critic updates done
         # Uniform random actions while steps < random_until, no updates while steps < update_after:
@@ -122,23 +106,67 @@ class ActorCritic(Agent):
         self.random_until = self.update_after = self.learning_starts
         self.refilled_at: int | None = None  # the step a resume without the buffer refilled from
         self.guard = NonFiniteGuard(self.device, (self.population,))
-        if compile:
-            self._compile_losses()
 
-    def build_critic(self, architecture: str, obs_dim: int, act_dim: int, hidden) -> nn.Module:
-        """The critics of every member as one ensemble of ``num_critics * population``."""
+    # --- construction: called by the algorithm's constructor, in this order ----------------------
+    def build_actor(self, actor_class: type[nn.Module] = EnsembleActor, **options) -> nn.Module:
+        """The actors of every member, one ensemble of ``population``: ``actor_class(n, obs_dim,
+        act_dim, hidden_sizes, action_low, action_high, **options)``."""
+        return actor_class(
+            self.population,
+            self.obs_dim,
+            self.act_dim,
+            self.hidden_sizes,
+            self.action_low,
+            self.action_high,
+            **options,
+        ).to(self.device)
+
+    def build_critic(self, critic_class: type[nn.Module] | None = None, **options) -> nn.Module:
+        """The critics of every member as one ensemble of ``num_critics * population``:
+        ``critic_class(obs_dim, act_dim, critic_hidden_sizes, n, **options)``, by default the
+        declared ``critic_architecture``."""
         n = self.num_critics * self.population
-        return make_critic(architecture, obs_dim, act_dim, hidden, n)
+        if critic_class is None:
+            return make_critic(
+                self.critic_architecture, self.obs_dim, self.act_dim, self.critic_hidden_sizes, n
+            ).to(self.device)
+        return critic_class(self.obs_dim, self.act_dim, self.critic_hidden_sizes, n, **options).to(
+            self.device
+        )
 
-    def target_of(self, network: nn.Module) -> nn.Module:
+    @staticmethod
+    def target_of(network: nn.Module) -> nn.Module:
         """A target network theta' of ``network``: a frozen copy, moved by soft updates."""
         return copy.deepcopy(network).requires_grad_(False)
 
-    def _compile_losses(self) -> None:
+    def adam(self, module: nn.Module, lr: float, betas: Sequence[float] | None = None):
+        """Fused Adam on ``module``'s parameters (fused: one kernel, and ``found_inf`` for the
+        NaN guard); ``betas``: the declared ``adam_betas`` unless given."""
+        betas = self.adam_betas if betas is None else tuple(betas)
+        return torch.optim.Adam(module.parameters(), lr=lr, betas=betas, fused=True)
+
+    def build_members(
+        self, exploration_noise: Callable[[np.random.Generator], GaussianNoise]
+    ) -> list[Member]:
+        """Each member's own parts: its exploration stream, its noise process drawing from that
+        stream (``exploration_noise(rng)``) and its replay buffer with its own sampler seed."""
+        members = []
+        for member_seed in range(self.seed, self.seed + self.population):
+            rng = numpy_rng(member_seed, "exploration")
+            replay_seed = stream_seeds(member_seed, "replay")[0]
+            buffer = ReplayBuffer(
+                self.buffer_size, self.obs_dim, self.act_dim, self.device, replay_seed
+            )
+            members.append(Member(rng, exploration_noise(rng), buffer))
+        return members
+
+    def compile_losses(self) -> None:
         """``compile=True``: the loss computations (:attr:`compiled_losses`), forward and
         backward, through ``torch.compile`` (fused elementwise work, less dispatch). On CUDA with
         CUDA graphs (``reduce-overhead``), where a small update is launch-bound. The optimizer
         steps stay eager: fused Adam is one kernel already and keeps the NaN guard's step skip."""
+        if not self.compile:
+            return
         mode = "reduce-overhead" if self.device.type == "cuda" else None
         for name in self.compiled_losses:
             setattr(self, name, torch.compile(getattr(self, name), mode=mode))
@@ -158,10 +186,6 @@ class ActorCritic(Agent):
         with torch.no_grad():
             obs_t = torch.as_tensor(obs, dtype=torch.float32, device=self.device)
             return self.policy(obs_t.unsqueeze(1), noise)
-
-    def exploration_noise(self, rng: np.random.Generator, act_dim: int) -> GaussianNoise:
-        """A member's exploration noise process, drawing from its exploration stream ``rng``."""
-        raise NotImplementedError
 
     def policy(self, obs: torch.Tensor, noise: np.ndarray | None) -> np.ndarray:
         """``(K, act_dim)`` actions for ``(K, 1, obs_dim)`` observations; ``noise``: each
@@ -194,10 +218,12 @@ class ActorCritic(Agent):
         self.num_updates += 1
         return True
 
-    def update_noise(self, b: Batch) -> tuple[torch.Tensor | None, torch.Tensor | None]:
-        """The random numbers of one update, for the critic loss and the actor loss: drawn
-        outside them so a compiled update draws the same numbers as eager."""
-        raise NotImplementedError
+    @staticmethod
+    def noise_like(x: torch.Tensor) -> torch.Tensor:
+        """eps ~ N(0, I) shaped like ``x``: every random number of an update is drawn here,
+        outside the losses, so a compiled update draws the same numbers as eager (and a parity
+        test can hand in another implementation's)."""
+        return torch.randn_like(x)
 
     def record_health(
         self, bad: torch.Tensor, delayed_bad: torch.Tensor | None
@@ -212,6 +238,11 @@ class ActorCritic(Agent):
         q = critic(self._per_critic(obs), self._per_critic(action))
         return q.unflatten(0, (self.population, self.num_critics))
 
+    def q1(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """Q_1(s, a) ``(K, N)``: each member's first critic alone (the deterministic policy
+        gradient's critic)."""
+        return self.critic(obs, action, members=slice(0, None, self.num_critics))
+
     @staticmethod
     def critics_regression(q: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
         """Per-member critic loss ``(K,)``: the sum over its critics of N^-1 sum (y - Q_j)^2,
@@ -219,7 +250,8 @@ class ActorCritic(Agent):
         return (q - y.unsqueeze(1)).pow(2).mean(dim=2).sum(dim=1)
 
     def sample(self) -> Batch:
-        """One mini-batch per member, stacked: ``(K, batch, ...)`` tensors."""
+        """One mini-batch per member, stacked: ``(K, batch, ...)`` tensors, with the rows each
+        member drew from its buffer (``index``)."""
         batches = [m.buffer.sample(self.batch_size) for m in self.members]
         return Batch(*(torch.stack(field) for field in zip(*batches, strict=True)))
 

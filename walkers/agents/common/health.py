@@ -1,9 +1,10 @@
 """The NaN/inf guard every agent shares: skipped updates, counted on the device.
 
 An optimizer step whose loss or gradient is not finite is skipped and the update counted. Every
-agent steps through :func:`guarded_step` (a population's members, each skipped on its own) or
-:func:`guarded_agent_step` (one agent, with gradient clipping and a learning-rate schedule): they
-set the fused optimizer's ``found_inf``, which makes its step a no-op, here and nowhere else.
+agent calls the guard where it takes the step, between ``backward()`` and ``step()``:
+:func:`skip_nonfinite` (per-member losses: a population's members, each skipped on its own) or
+:func:`clip_or_skip` (one agent's scalar loss, with gradient clipping). They set the fused optimizer's ``found_inf``, which makes its step a
+no-op, here and nowhere else.
 Checks and counts are device tensors, so the guard adds no host-device sync to the hot loop; the
 trainer reads ``health/*`` only when it logs, and ends a run whose updates have all been skipped
 for too long (:class:`walkers.training.bookkeeping.TrainingDiverged`).
@@ -78,78 +79,72 @@ class GuardedStep(NamedTuple):
     grad_norm: torch.Tensor | None
 
 
-def guarded_step(
+def skip_nonfinite(
     optimizer: torch.optim.Optimizer,
     member_loss: torch.Tensor,
-    copies: int,
-    also_bad: torch.Tensor | None = None,
+    copies: int = 1,
+    also_skip: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """Minimize the sum of per-member losses ``(K,)``, skipping members whose loss or gradient
-    is NaN/inf (a finite loss can still have an infinite gradient).
+    """Between ``backward`` and ``step``: skip the members whose loss or gradient is NaN/inf (a
+    finite loss can still have an infinite gradient), for per-member losses ``(K,)``.
 
     No host sync: a bad member's gradients are zeroed (NaN included), and fused Adam's
     ``found_inf`` skips the whole step when every member is bad (for a single agent: whenever
     it is). ``copies``: parameter members per agent member (e.g. the critics per member);
-    ``also_bad``: members to skip for another reason. ``optimizer``: fused (Adam, AdamW), the
-    kind that reads ``found_inf``. Returns the skipped members ``(K,)``.
+    ``also_skip``: members to skip for another reason. ``optimizer``: fused (Adam, AdamW), the
+    kind that reads ``found_inf``. Returns the skipped members ``(K,)`` (1.0 skipped, 0.0 taken).
     """
-    return _step(optimizer, member_loss, copies, also_bad).skipped
-
-
-def guarded_agent_step(
-    optimizer: torch.optim.Optimizer,
-    loss: torch.Tensor,
-    *,
-    max_grad_norm: float | None = None,
-    scheduler: torch.optim.lr_scheduler.LRScheduler | None = None,
-) -> GuardedStep:
-    """One agent's step on its scalar ``loss``, as :func:`guarded_step` guards it, with what
-    the on-policy and offline agents add between backward and step.
-
-    ``max_grad_norm``: the global gradient norm is clipped to it (None: no clip); the norm
-    before clipping is returned for logging, and a NaN/inf norm is what skips the step.
-    ``scheduler``: advanced after the step, skipped or not (the schedule counts updates;
-    stepping it only after a taken step would need the verdict on the host, a sync).
-    """
-    return _step(optimizer, loss, 1, None, max_grad_norm, scheduler)
-
-
-def _step(
-    optimizer: torch.optim.Optimizer,
-    member_loss: torch.Tensor,
-    copies: int,
-    also_bad: torch.Tensor | None,
-    max_grad_norm: float | None = None,
-    scheduler: torch.optim.lr_scheduler.LRScheduler | None = None,
-) -> GuardedStep:
-    """Backward, check, clip, step: the one implementation behind both guarded steps."""
-    optimizer.zero_grad(set_to_none=True)
-    member_loss.sum().backward()
-    params = [p for group in optimizer.param_groups for p in group["params"]]
-    grads = [p.grad for p in params if p.grad is not None]
+    grads = _gradients(optimizer)
     members = member_loss.numel()
-    grad_norm = None
     if members == 1:  # one agent: the total norm (fused over all gradients) is finite or not
-        grad_norm = torch.nn.utils.get_total_norm(grads)
-        bad_grads = (~torch.isfinite(grad_norm)).to(torch.float32).view(1)
-        if max_grad_norm is not None:  # what clip_grad_norm_ does, reusing the norm
-            torch.nn.utils.clip_grads_with_norm_(params, max_grad_norm, grad_norm)
+        bad_grads = _not_finite(torch.nn.utils.get_total_norm(grads)).view(1)
     else:
-        if max_grad_norm is not None:
-            raise ValueError("gradient-norm clipping is per agent, not for a population")
         bad_grads = _bad_member_gradients(grads, members)
-    bad = torch.maximum(NonFiniteGuard.bad_members(member_loss.view(-1)), bad_grads)
-    if also_bad is not None:
-        bad = torch.maximum(bad, also_bad)
-    optimizer.found_inf = bad.min()
+    bad = _skip(optimizer, member_loss, bad_grads, also_skip)
     if members > 1:  # one agent: found_inf skips the step already
         skip = (bad > 0).repeat_interleave(copies)
         for grad in grads:  # members lead every parameter's dimensions
             grad.masked_fill_(skip.view(-1, *(1,) * (grad.dim() - 1)), 0.0)
-    optimizer.step()
-    if scheduler is not None:
-        scheduler.step()
-    return GuardedStep(bad.view(member_loss.shape), grad_norm)
+    return bad.view(member_loss.shape)
+
+
+def clip_or_skip(
+    optimizer: torch.optim.Optimizer, loss: torch.Tensor, max_grad_norm: float | None
+) -> GuardedStep:
+    """Between ``backward`` and ``step`` of one agent's scalar ``loss``: the global gradient
+    norm clipped to ``max_grad_norm`` (None: no clip), and the step skipped (``found_inf``)
+    where the loss or that norm is NaN/inf. The norm before clipping is returned for logging."""
+    params = [p for group in optimizer.param_groups for p in group["params"]]
+    grad_norm = torch.nn.utils.get_total_norm(_gradients(optimizer))
+    if max_grad_norm is not None:  # what clip_grad_norm_ does, reusing the norm
+        torch.nn.utils.clip_grads_with_norm_(params, max_grad_norm, grad_norm)
+    bad = _skip(optimizer, loss, _not_finite(grad_norm).view(1), None)
+    return GuardedStep(bad.view(loss.shape), grad_norm)
+
+
+def _gradients(optimizer: torch.optim.Optimizer) -> list[torch.Tensor]:
+    return [
+        p.grad for group in optimizer.param_groups for p in group["params"] if p.grad is not None
+    ]
+
+
+def _not_finite(x: torch.Tensor) -> torch.Tensor:
+    return (~torch.isfinite(x)).to(torch.float32)
+
+
+def _skip(
+    optimizer: torch.optim.Optimizer,
+    loss: torch.Tensor,
+    bad_grads: torch.Tensor,
+    also_skip: torch.Tensor | None,
+) -> torch.Tensor:
+    """The members to skip (a bad loss, bad gradients, ``also_skip``), told to the fused
+    optimizer: ``found_inf`` makes its step a no-op when all are."""
+    bad = torch.maximum(NonFiniteGuard.bad_members(loss.view(-1)), bad_grads)
+    if also_skip is not None:
+        bad = torch.maximum(bad, also_skip)
+    optimizer.found_inf = bad.min()
+    return bad
 
 
 def _bad_member_gradients(grads: list[torch.Tensor], members: int) -> torch.Tensor:

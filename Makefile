@@ -78,8 +78,14 @@ stack: $(STAMP)  ## PostgreSQL + an MLflow server on it for a team or a cluster,
 bench: $(STAMP)  ## benchmarks: the TD3 update vs a plain eager implementation, side by side
 	$(PY) benchmarks/bench_update.py $(ARGS)
 
-bench-throughput: $(STAMP)  ## env steps/s of walkers TD3/DDPG/SAC/CrossQ/PPO/REINFORCE vs Stable-Baselines3 (and sb3-contrib) on Walker2d
+bench-throughput: $(STAMP)  ## env steps/s of walkers TD3/DDPG/SAC/CrossQ/PPO (1, 4, 8 envs)/REINFORCE vs Stable-Baselines3 (and sb3-contrib) on Walker2d
 	$(PY) benchmarks/bench_throughput.py $(ARGS)
+
+bench-envs: $(STAMP)  ## how N training envs step on this machine's cores: a sequential loop, Gymnasium's SyncVectorEnv and AsyncVectorEnv, and envpool when installed (ARGS="--envs 1,2,4,8")
+	$(PY) benchmarks/bench_envs.py $(ARGS)
+
+bench-time-to-walk: $(STAMP)  ## PPO's wall time to its first evaluation >= 3,000 on Walker2d through walkers.train, algo.num_envs=1 beside 8, 3 seeds (half an hour or more on 2 cores; ARGS="--envs 1,8 --seeds 0,1,2 --budget 500000")
+	$(PY) benchmarks/bench_time_to_walk.py $(ARGS)
 
 bench-dt: $(STAMP)  ## the Decision Transformer's gradient step at its reference size, per device (ARGS="--devices cpu,cuda")
 	$(PY) benchmarks/bench_dt.py $(ARGS)

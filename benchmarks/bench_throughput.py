@@ -12,7 +12,9 @@ thread each, as a joblib multirun runs them.
 PPO has its own table, against SB3's PPO: both at the reference settings (64-64 tanh, rollouts of
 2048 steps, 10 epochs of 32 minibatches of 64, lr 3e-4, observation and reward normalization: in
 the agent for walkers, ``VecNormalize`` for SB3, as RL-Zoo runs MuJoCo); a round there is one
-rollout and its update. Then: the TD3 update alone, an estimate of its FLOPs, this machine's fp32
+rollout and its update. Its ``N envs`` rows are walkers' PPO with ``algo.num_envs=N``: the same
+rollout of 2048 steps, 2048 / N from each of N envs acting as one batch.
+Then: the TD3 update alone, an estimate of its FLOPs, this machine's fp32
 matmul rate, and the memory of a full 1M-transition replay buffer. SB3 is a benchmark-only
 dependency (``pip install -e '.[sb3]'``); without it the SB3 rows are skipped. ``--only PPO``
 runs only the contenders with PPO in their name. A benchmark, not a test: nothing here asserts on
@@ -45,11 +47,12 @@ from walkers.agents.reinforce import Reinforce
 from walkers.agents.sac import SAC
 from walkers.agents.td3 import TD3
 from walkers.data.replay import DATA_FIELDS, ReplayBuffer
-from walkers.training.envs import env_spaces
+from walkers.training.envs import env_spaces, make_vector_env
 
 ENV_ID, HIDDEN, BATCH, WARMUP = "Walker2d-v5", 256, 256, 1_000
 PPO_ROLLOUT = 2048  # PPO's reference rollout: a PPO round is one rollout and its update
-PPO_ROWS = ("walkers PPO", "SB3 PPO")
+PPO_ENVS = (4, 8)  # the walkers PPO rows with algo.num_envs envs acting as one batch
+PPO_ROWS = ("walkers PPO", *(f"walkers PPO {n} envs" for n in PPO_ENVS), "SB3 PPO")
 #: CrossQ's critic widths on a CPU: the paper's 2048, sb3-contrib's 1024, and narrower ones
 CROSSQ_WIDTHS = (2048, 1024, 512, 256)
 CROSSQ_ROUND = 100  # env steps per round of the CrossQ rows (a 2048-wide update takes ~0.1 s)
@@ -196,6 +199,38 @@ def walkers_ppo() -> WalkersLoop:
     return loop
 
 
+class VectorPPOLoop:
+    """walkers' PPO with ``num_envs`` envs acting as one batch (walkers.training.loops'
+    train_vectorized: one vector env in this process, episodes reset in the step)."""
+
+    round_steps = PPO_ROLLOUT
+
+    def __init__(self, num_envs: int):
+        self.envs = make_vector_env({"id": ENV_ID, "max_episode_steps": 1000}, num_envs)
+        spaces = env_spaces(self.envs.envs[0])
+        hp = defaults_for(PPO, num_envs=num_envs, total_steps=1_000_000)
+        self.agent = PPO(**spaces, seed=0, device=DEVICE, **hp)
+        self.obs, _ = self.envs.reset(seed=0)
+
+    def run(self, steps: int) -> None:
+        agent, envs, n = self.agent, self.envs, self.envs.num_envs
+        for _ in range(steps // n):
+            actions = agent.act(self.obs, explore=True)
+            next_obs, rewards, terminated, truncated, info = envs.step(actions)
+            own = next_obs.copy()
+            for i in np.flatnonzero(terminated | truncated):
+                own[i] = info["final_obs"][i]
+            agent.observe_batch(
+                [
+                    Transition(self.obs[i], actions[i], float(rewards[i]), own[i],
+                               bool(terminated[i]), bool(truncated[i]))  # fmt: skip
+                    for i in range(n)
+                ]
+            )
+            agent.update()
+            self.obs = next_obs
+
+
 class SB3PPOLoop:
     """Stable-Baselines3's PPO at the same settings (its defaults, value clipping off as walkers'
     default), on ``VecNormalize``; ``learn`` collects whole rollouts, so a round is one."""
@@ -249,6 +284,7 @@ def contenders(only: str | None = None, population: tuple[int, ...] = (2, 4)) ->
         **{f"walkers CrossQ {width}": partial(walkers_crossq, width) for width in CROSSQ_WIDTHS},
         "walkers REINFORCE": lambda: WalkersLoop(Reinforce, hidden_sizes=[HIDDEN, HIDDEN]),
         "walkers PPO": walkers_ppo,
+        **{f"walkers PPO {n} envs": partial(VectorPPOLoop, n) for n in PPO_ENVS},
         # population=K: the aggregate env steps/s of K seeds trained together
         **{
             f"walkers TD3 K={k}": partial(

@@ -780,7 +780,7 @@ def make_rollout(seed: int = 7) -> dict[str, torch.Tensor]:
 
 def fill_walkers_rollout(agent, r: dict) -> None:
     for t in range(STEPS):
-        agent.rollout.add(
+        agent.rollouts[0].add(
             bool(r["episode_end"][t]),
             obs=r["obs"][t].numpy(),
             action=r["action"][t].numpy(),

@@ -69,7 +69,7 @@ def test_the_agent_bootstraps_a_truncation_from_its_own_next_state():
     ):
         action = agent.act(np.array([s], np.float32), explore=True)
         agent.observe(Transition(np.array([s]), action, r, np.array([s2]), term, trunc))
-    batch = agent._prepare_batch(agent.rollout.take())
+    batch = agent._prepare_batch([agent.rollouts[0].take()])
     np.testing.assert_allclose(batch["advantages"].numpy(), ADVANTAGES, rtol=1e-6)
 
 
@@ -168,15 +168,15 @@ def test_checkpoint_round_trip_holds_normalizer_and_rollout():
     assert fresh.obs_normalizer.rms.count == agent.obs_normalizer.rms.count
     assert agent.obs_normalizer.rms.count == pytest.approx(140)  # every explored observation
     assert fresh.reward_scaler.rms.count == agent.reward_scaler.rms.count
-    assert (fresh.steps, fresh.num_updates, len(fresh.rollout)) == (140, 2, 12)
+    assert (fresh.steps, fresh.num_updates, len(fresh.rollouts[0])) == (140, 2, 12)
     assert fresh.resume_notes() == {}
     # the unfinished episode is cut where the checkpoint was: a truncation, bootstrapped
-    data = fresh.rollout.take()
+    data = fresh.rollouts[0].take()
     assert data["episode_end"][-1] and data["terminated"][-1] == 0.0
 
     light = _small_agent(seed=7)  # MLflow's copy holds no rollout by default
     light.load_state_dict(agent.state_dict())
-    assert len(light.rollout) == 0
+    assert len(light.rollouts[0]) == 0
     assert "12 steps" in light.resume_notes()[ROLLOUT_RESTART_TAG]
 
 

@@ -93,13 +93,20 @@ def first_training_reset(env: gym.Env, seed: int):
     return env.reset(seed=training_env_seed(seed))
 
 
-def env_rng_state(env: gym.Env) -> dict:
-    """The training env's RNG state (what its next resets will draw), for a checkpoint."""
+def env_rng_state(env: gym.Env | gym.vector.SyncVectorEnv) -> dict:
+    """The training env's RNG state (what its next resets will draw), for a checkpoint; of a
+    vector env, each of its envs' (``{"envs": [...]}``)."""
+    if isinstance(env, gym.vector.SyncVectorEnv):
+        return {"envs": [env_rng_state(one) for one in env.envs]}
     return env.unwrapped.np_random.bit_generator.state
 
 
-def restore_env_rng(env: gym.Env, state: dict) -> None:
+def restore_env_rng(env: gym.Env | gym.vector.SyncVectorEnv, state: dict) -> None:
     """Continue the training env's RNG from a checkpoint (before its next, unseeded reset)."""
+    if isinstance(env, gym.vector.SyncVectorEnv):
+        for one, one_state in zip(env.envs, state["envs"], strict=True):
+            restore_env_rng(one, one_state)
+        return
     generator = np.random.Generator(getattr(np.random, state["bit_generator"])())
     generator.bit_generator.state = state
     env.unwrapped.np_random = generator

@@ -92,6 +92,7 @@ class PPO(Agent):
         *,
         lr: float,
         n_steps: int,
+        num_envs: int,
         n_epochs: int,
         n_minibatches: int,
         gamma: float,
@@ -118,8 +119,11 @@ class PPO(Agent):
     ):
         if n_minibatches > n_steps:
             raise ValueError(f"n_minibatches={n_minibatches} is more than n_steps={n_steps}")
+        if n_steps % num_envs:
+            raise ValueError(f"num_envs={num_envs} does not divide n_steps={n_steps}")
         self.device = resolve_device(device)
         self.lr, self.n_steps, self.n_epochs = lr, int(n_steps), int(n_epochs)
+        self.num_envs = int(num_envs)  # envs stepped together: a rollout is a stream of each
         self.n_minibatches = int(n_minibatches)
         self.gamma, self.gae_lambda, self.clip_coef = gamma, gae_lambda, clip_coef
         self.value_clip = clip_coef if clip_value_loss else None
@@ -142,8 +146,10 @@ class PPO(Agent):
         self.params = [*self.policy.parameters(), *self.value.parameters()]
         self.optimizer = torch.optim.Adam(self.params, lr=lr, eps=adam_eps, fused=True)
         self.obs_normalizer = ObservationNormalizer((obs_dim,), normalize_obs, clip_obs)
-        self.reward_scaler = RewardScaler(gamma, normalize_reward, clip_reward)
-        self.rollout = Rollout()
+        self.reward_scaler = RewardScaler(
+            gamma, normalize_reward, clip_reward, num_envs=self.num_envs
+        )
+        self.rollouts = [Rollout() for _ in range(self.num_envs)]  # one stream per env
         self.steps = 0  # env steps observed
         self.num_updates = 0  # rollouts learned from
         self.guard = NonFiniteGuard(self.device)
@@ -153,6 +159,7 @@ class PPO(Agent):
 
     # --- acting -------------------------------------------------------------------------------
     def act(self, obs: np.ndarray, explore: bool) -> np.ndarray:
+        """For one observation, or a batch ``(num_envs, obs_dim)`` of the envs stepped together."""
         # exploring (training) updates the normalizer's statistics; greedy actions use them frozen
         obs = self.obs_normalizer(obs, update=explore)
         with torch.no_grad():
@@ -169,7 +176,7 @@ class PPO(Agent):
 
     def observe(self, t: Transition) -> None:
         obs, sample = self._last
-        self.rollout.add(
+        self.rollouts[0].add(
             t.episode_over,
             obs=obs,
             action=sample,
@@ -180,11 +187,29 @@ class PPO(Agent):
         )
         self.steps += 1
 
+    def observe_batch(self, transitions: Sequence[Transition]) -> None:
+        """One step of each of the ``num_envs`` envs, in env order (after a batch ``act``)."""
+        obs, sample = self._last
+        rewards = self.reward_scaler.scale_batch(
+            [t.reward for t in transitions], [t.episode_over for t in transitions]
+        )
+        next_obs = self.obs_normalizer(np.stack([t.next_obs for t in transitions]), update=False)
+        for i, t in enumerate(transitions):
+            self.rollouts[i].add(
+                t.episode_over,
+                obs=obs[i],
+                action=sample[i],
+                reward=rewards[i],
+                terminated=float(t.terminated),
+                next_obs=next_obs[i],
+            )
+        self.steps += len(transitions)
+
     # --- learning -----------------------------------------------------------------------------
     def update(self) -> dict[str, torch.Tensor]:
-        if len(self.rollout) < self.n_steps:
+        if len(self.rollouts[0]) < self.n_steps // self.num_envs:
             return {}
-        b = self._prepare_batch(self.rollout.take())
+        b = self._prepare_batch([rollout.take() for rollout in self.rollouts])
         lr = self._anneal_learning_rate()
         sums = dict.fromkeys(("policy", "value", "entropy", "kl", "clip", "grad"), 0.0)
         minibatches = 0
@@ -214,27 +239,30 @@ class PPO(Agent):
         }
         return metrics | self.guard.metrics()
 
-    def _prepare_batch(self, data: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
-        """The rollout as tensors, with the old policy's log-probabilities, the old values, the
-        GAE advantages and the value targets."""
+    def _prepare_batch(self, streams: list[dict[str, np.ndarray]]) -> dict[str, torch.Tensor]:
+        """The rollout (each env's stream, concatenated in env order) as tensors, with the old
+        policy's log-probabilities, the old values, the GAE advantages and the value targets."""
+        data = {k: np.concatenate([stream[k] for stream in streams]) for k in streams[0]}
         t = {k: torch.as_tensor(v, device=self.device) for k, v in data.items()}
+        # each stream ends where its env's part of the rollout ends: its trace stops there and
+        # its last step bootstraps, as at an episode's truncation
+        stream_end = data["episode_end"].copy()
+        stream_end[np.cumsum([len(stream["reward"]) for stream in streams]) - 1] = True
         with torch.no_grad():
             old_log_prob = self.policy(t["obs"]).log_prob(t["action"]).sum(-1)
             values = self.value(t["obs"]).squeeze(-1).cpu().numpy()
             # V(s'_t) is V(s_{t+1}) inside an episode; the value of the step's own next
             # observation where an episode ends (used only after a truncation) and at the end of
-            # the rollout (bootstrapping the unfinished episode)
-            own = data["episode_end"].copy()
-            own[-1] = True
+            # each env's stream (bootstrapping the unfinished episode)
             next_values = np.append(values[1:], 0.0).astype(np.float32)
-            own_next_obs = t["next_obs"][torch.as_tensor(own, device=self.device)]
-            next_values[own] = self.value(own_next_obs).squeeze(-1).cpu().numpy()
+            own_next_obs = t["next_obs"][torch.as_tensor(stream_end, device=self.device)]
+            next_values[stream_end] = self.value(own_next_obs).squeeze(-1).cpu().numpy()
         advantages, returns = gae(
             data["reward"],
             values,
             next_values,
             data["terminated"] > 0,
-            data["episode_end"],
+            stream_end,
             self.gamma,
             self.gae_lambda,
         )
@@ -303,13 +331,14 @@ class PPO(Agent):
             "reward_scaler": self.reward_scaler.state_dict(),
             "steps": self.steps,
             "num_updates": self.num_updates,
-            "rollout_steps": len(self.rollout),
+            "rollout_steps": sum(len(rollout) for rollout in self.rollouts),
             "guard": self.guard.state_dict(),
             "generator": self.generator.get_state(),
             "minibatch_generator": self.minibatch_generator.get_state(),
         }
-        if with_buffer:
-            state["rollout"] = self.rollout.state_dict()
+        if with_buffer:  # one env: "rollout", as before there were several
+            streams = [rollout.state_dict() for rollout in self.rollouts]
+            state |= {"rollout": streams[0]} if self.num_envs == 1 else {"rollouts": streams}
         return state
 
     def load_state_dict(self, state: dict) -> None:
@@ -326,11 +355,13 @@ class PPO(Agent):
         )
         # A resumed run starts a new episode (the interrupted one cannot be continued): the
         # rollout's last episode is cut there, a truncation that bootstraps from V(s').
-        self.rollout = Rollout()
-        self.rollout.load_state_dict(state.get("rollout", {}))
-        self.rollout.cut()
+        saved = state.get("rollouts", [state["rollout"]] if "rollout" in state else None)
+        self.rollouts = [Rollout() for _ in range(self.num_envs)]
+        for rollout, stream in zip(self.rollouts, saved or [], strict=False):
+            rollout.load_state_dict(stream)
+            rollout.cut()
         self.reward_scaler.new_episode()
-        self._rollout_dropped = state["rollout_steps"] if "rollout" not in state else 0
+        self._rollout_dropped = state["rollout_steps"] if saved is None else 0
 
     def resume_notes(self) -> dict[str, str]:
         if not self._rollout_dropped:

@@ -65,6 +65,21 @@ def make_env(env_cfg, *, shaping: bool = True, render_mode: str | None = None) -
     return env
 
 
+def make_vector_env(env_cfg, num_envs: int) -> gym.vector.SyncVectorEnv:
+    """``num_envs`` training envs (:func:`make_env`) stepped together in this process, a finished
+    episode reset in the same step (its last observation in ``info["final_obs"]``, its
+    statistics in ``info["final_info"]``). Reset with ``seed=s``, env ``i`` starts from seed
+    ``s + i`` (Gymnasium's rule), so env 0 starts as a single-env run of the same seed does.
+
+    In-process by measurement (``make bench-envs``): on 2 cores, AsyncVectorEnv's worker
+    processes stepped Walker2d-v5 at 0.38x one env alone, their messages costing more than the
+    step; the gain of several envs is acting on them as one batch."""
+    same_step = gym.vector.AutoresetMode.SAME_STEP
+    return gym.vector.SyncVectorEnv(
+        [lambda: make_env(env_cfg)] * num_envs, autoreset_mode=same_step
+    )
+
+
 def env_spaces(env: gym.Env) -> dict:
     """The shapes an agent is built from."""
     return {

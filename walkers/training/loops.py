@@ -1,6 +1,8 @@
 """The training loops: they act, step, observe and update; their runs' books do the rest.
 
     online:      act -> env step -> observe -> update -> book.after_step
+    vectorized:  act on N envs as one batch -> step all -> observe all -> update ->
+                 book.after_step once per env, in env order (PPO with num_envs > 1)
     offline:     update (a gradient step on the dataset) -> book.after_step
     population:  act all -> step each env -> observe all -> one update -> each book.after_step
     sb3:         Stable-Baselines3's own learn() loop; its callback -> book.after_step
@@ -64,6 +66,56 @@ def train_online(agent: Agent, env: gym.Env, book: RunBook) -> dict[str, float]:
     def settle() -> None:  # train() called from Python keeps Python's own Ctrl-C, which can land
         if (steps := getattr(agent, "steps", None)) is not None:  # between observe and the count
             p.step = steps
+
+    return _running([book], loop, settle=settle)[0]
+
+
+def train_vectorized(
+    agent: Agent, envs: gym.vector.SyncVectorEnv, book: RunBook
+) -> dict[str, float]:
+    """Until ``total_steps`` env steps summed over the ``num_envs`` envs (a multiple of it, as
+    ``checkpoint_every`` is: walkers.training.validate), which finish their episodes in the
+    step (``AutoresetMode.SAME_STEP``); returns the summary."""
+    p, n = book.progress, envs.num_envs
+
+    def loop(bar: tqdm) -> None:
+        obs, _ = book.first_reset()  # env i from the run's seed + i
+        losses: dict[str, torch.Tensor] = {}
+        while p.step < book.settings.total_steps:
+            with shielded():
+                actions = agent.act(obs, explore=True)
+                next_obs, rewards, terminated, truncated, info = envs.step(actions)
+                ended = np.flatnonzero(terminated | truncated)
+                own_next_obs = next_obs.copy()  # a finished episode's own last observation,
+                for i in ended:  # not the next episode's first
+                    own_next_obs[i] = info["final_obs"][i]
+                agent.observe_batch(
+                    [
+                        Transition(
+                            obs[i],
+                            actions[i],
+                            float(rewards[i]),
+                            own_next_obs[i],
+                            bool(terminated[i]),
+                            bool(truncated[i]),
+                        )  # fmt: skip
+                        for i in range(n)
+                    ]
+                )
+                losses.update(agent.update())
+                obs = next_obs
+                for i in range(n):
+                    p.step += 1
+                    if i in ended:
+                        episode = info["final_info"]["episode"]
+                        book.record_episode(
+                            {"episode": {"r": episode["r"][i], "l": episode["l"][i]}}
+                        )
+                    if _after_step(book, losses, bar):
+                        return
+
+    def settle() -> None:  # Python's own Ctrl-C (train() called from Python) can land mid-step
+        p.step = agent.steps
 
     return _running([book], loop, settle=settle)[0]
 

@@ -2,6 +2,7 @@
 envs and the agent, run the loop, end every run with its status; return the optimized metric.
 
     single run:   envs + agent -> TrainingRun.open -> RunBook -> train_online | _offline | _sb3
+                  (algo.num_envs > 1: a vector env -> train_vectorized)
     population:   K members' envs + one agent -> K TrainingRuns and books -> train_population
 
 Every run opened is ended by :func:`walkers.training.run.ending`, whatever way the session ends.
@@ -22,17 +23,23 @@ from walkers.agents.sb3.twin import SB3Twin
 from walkers.errors import ConfigError
 from walkers.training import resume
 from walkers.training.bookkeeping import RunBook
-from walkers.training.envs import env_spaces, make_env
+from walkers.training.envs import env_spaces, make_env, make_vector_env
 from walkers.training.evaluation import (
     offline_evaluation,
     offline_references,
     with_normalized_score,
 )
-from walkers.training.loops import train_offline, train_online, train_population, train_sb3
+from walkers.training.loops import (
+    train_offline,
+    train_online,
+    train_population,
+    train_sb3,
+    train_vectorized,
+)
 from walkers.training.provenance import MEMBER_TAG, POPULATION_TAG, shareable
 from walkers.training.run import ENV_STEP_AXIS, GRADIENT_STEP_AXIS, TrainingRun, ending
 from walkers.training.settings import RunSettings
-from walkers.training.validate import check_environment, is_offline, validate
+from walkers.training.validate import check_environment, is_offline, num_envs, validate
 from walkers.tuning.trial import TrialReporter
 
 log = logging.getLogger("walkers")
@@ -78,7 +85,11 @@ def train(cfg: DictConfig, overrides: list[str] | tuple = (), tags: dict | None 
 
 def _train_single(cfg: DictConfig, client, state: dict | None, tags: dict) -> dict[str, float]:
     data = load_dataset(cfg) if is_offline(cfg) else None
-    env = None if data is not None else make_env(cfg.env)  # offline agents never step an env
+    vectorized = num_envs(cfg) > 1 and cfg.impl == "walkers"
+    if data is not None:  # offline agents never step an env
+        env = None
+    else:
+        env = make_vector_env(cfg.env, num_envs(cfg)) if vectorized else make_env(cfg.env)
     eval_env = make_env(cfg.env, shaping=False)
     video_env = (
         make_env(cfg.env, shaping=False, render_mode="rgb_array") if cfg.video_every else None
@@ -114,6 +125,8 @@ def _train_single(cfg: DictConfig, client, state: dict | None, tags: dict) -> di
                 summary = train_offline(agent, book)
             elif isinstance(agent, SB3Twin):
                 summary = train_sb3(agent, book)
+            elif vectorized:
+                summary = train_vectorized(agent, env, book)
             else:
                 summary = train_online(agent, env, book)
             if book.stopped_early:

@@ -107,6 +107,22 @@ def _check_dataset(cfg: DictConfig) -> None:
         )
 
 
+def _check_vector_envs(cfg: DictConfig) -> None:
+    """With ``algo.num_envs`` envs stepped together the count moves ``num_envs`` at a time: the
+    budget and the checkpoints fall where every env has stepped (a checkpoint between them
+    would hold a step count the agent is past)."""
+    n = num_envs(cfg)
+    if n == 1 or cfg.get("impl", "walkers") != "walkers":
+        return
+    for key in ("total_steps", "checkpoint_every"):
+        check(key, cfg[key], cfg[key] % n == 0, f"a multiple of algo.num_envs ({n})")
+
+
+def num_envs(cfg: DictConfig) -> int:
+    """The envs the run steps together (``algo.num_envs``; 1 for an algorithm without it)."""
+    return OmegaConf.select(cfg, "algo.num_envs", default=1)
+
+
 def check(key: str, value, ok: bool, allowed: str) -> None:
     if not ok:
         raise ConfigError(f"{key}={value!r} is not allowed: must be {allowed}")
@@ -133,6 +149,7 @@ def validate(cfg: DictConfig) -> None:
     _check_implementation(cfg)
     _check_dataset(cfg)
     _check_population(cfg)
+    _check_vector_envs(cfg)
     if cfg.device == "cuda":
         import torch
 

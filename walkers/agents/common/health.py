@@ -3,8 +3,8 @@
 An optimizer step whose loss or gradient is not finite is skipped and the update counted. Every
 agent calls the guard where it takes the step, between ``backward()`` and ``step()``:
 :func:`skip_nonfinite` (per-member losses: a population's members, each skipped on its own) or
-:func:`clip_or_skip` (one agent's scalar loss, with gradient clipping). They set the fused optimizer's ``found_inf``, which makes its step a
-no-op, here and nowhere else.
+:func:`clip_or_skip` (one agent's scalar loss, with gradient clipping). They set the fused
+optimizer's ``found_inf``, which makes its step a no-op, here and nowhere else.
 Checks and counts are device tensors, so the guard adds no host-device sync to the hot loop; the
 trainer reads ``health/*`` only when it logs, and ends a run whose updates have all been skipped
 for too long (:class:`walkers.training.bookkeeping.TrainingDiverged`).

@@ -46,12 +46,13 @@ class ObservationNormalizer:
         self.rms = RunningMeanStd(shape)
 
     def __call__(self, obs: np.ndarray, update: bool) -> np.ndarray:
-        """``obs`` normalized (float32); ``update``: add it to the statistics first."""
+        """``obs`` normalized (float32), one observation or a batch ``(N, *shape)``;
+        ``update``: add it to the statistics first."""
         obs = np.asarray(obs, np.float32)
         if not self.enabled:
             return obs
         if update:
-            self.rms.update(obs[None])
+            self.rms.update(obs if obs.ndim > self.rms.mean.ndim else obs[None])
         normalized = (obs - self.rms.mean) / np.sqrt(self.rms.var + self.eps)
         return np.clip(normalized, -self.clip, self.clip).astype(np.float32)
 
@@ -66,12 +67,16 @@ class RewardScaler:
     """r / sqrt(Var[R] + eps), clipped to [-clip, clip], with R the running discounted return of
     the current episode, R <- gamma * R + r, reset at every episode end (Stable-Baselines3's
     ``VecNormalize``; the mean is not subtracted: it would change the problem). The identity when
-    disabled."""
+    disabled. With ``num_envs`` > 1 each env has its own R and the statistics are shared
+    (:meth:`scale_batch`, as ``VecNormalize`` over a vector env)."""
 
-    def __init__(self, gamma: float, enabled: bool, clip: float = 10.0, eps: float = 1e-8):
+    def __init__(
+        self, gamma: float, enabled: bool, clip: float = 10.0, eps: float = 1e-8, *, num_envs=1
+    ):
         self.gamma, self.enabled, self.clip, self.eps = gamma, enabled, clip, eps
         self.rms = RunningMeanStd()
-        self.discounted_return = 0.0
+        self.num_envs = num_envs
+        self.discounted_return = 0.0 if num_envs == 1 else np.zeros(num_envs)
 
     def __call__(self, reward: float, episode_end: bool) -> float:
         """The scaled reward of a training step (the statistics update with it)."""
@@ -84,13 +89,33 @@ class RewardScaler:
             self.discounted_return = 0.0
         return float(np.clip(scaled, -self.clip, self.clip))
 
+    def scale_batch(self, rewards: np.ndarray, episode_ends: np.ndarray) -> np.ndarray:
+        """The scaled rewards of one step of the ``num_envs`` envs ``(N,)``: every env's R moves,
+        then the statistics take the N returns at once."""
+        rewards = np.asarray(rewards, np.float64)
+        if not self.enabled:
+            return rewards
+        self.discounted_return = self.discounted_return * self.gamma + rewards
+        self.rms.update(self.discounted_return)
+        scaled = rewards / np.sqrt(self.rms.var + self.eps)
+        self.discounted_return[np.asarray(episode_ends, bool)] = 0.0
+        return np.clip(scaled, -self.clip, self.clip)
+
     def new_episode(self) -> None:
-        """The current episode is over without an episode end seen (a resumed run)."""
-        self.discounted_return = 0.0
+        """The current episodes are over without an episode end seen (a resumed run)."""
+        self.discounted_return = 0.0 if self.num_envs == 1 else np.zeros(self.num_envs)
 
     def state_dict(self) -> dict:
-        return {"rms": self.rms.state_dict(), "discounted_return": self.discounted_return}
+        returns = self.discounted_return
+        return {
+            "rms": self.rms.state_dict(),
+            "discounted_return": returns if self.num_envs == 1 else returns.tolist(),
+        }
 
     def load_state_dict(self, state: dict) -> None:
         self.rms.load_state_dict(state["rms"])
-        self.discounted_return = float(state["discounted_return"])
+        returns = state["discounted_return"]
+        if self.num_envs == 1:
+            self.discounted_return = float(returns)
+        else:
+            self.discounted_return = np.asarray(returns, np.float64).reshape(self.num_envs)

@@ -93,6 +93,8 @@ class Hyperparameters:
     RUN_SETTINGS: ClassVar[dict[str, tuple[Any, str]]] = {}
     #: a hyperparameter bounded by another: ``{key: (bound key, why)}`` (key <= bound)
     AT_MOST: ClassVar[dict[str, tuple[str, str]]] = {}
+    #: a hyperparameter that must divide another: ``{key: (multiple key, why)}``
+    DIVIDES: ClassVar[dict[str, tuple[str, str]]] = {}
 
 
 def declared(schema: type[Hyperparameters]) -> list[dataclasses.Field]:
@@ -134,5 +136,11 @@ def problems(schema: type[Hyperparameters], values: dict, prefix: str = "algo.")
             return (
                 f"{prefix}{key}={values[key]!r} is not allowed: must be at most "
                 f"{prefix}{bound} ({values[bound]}){why}"
+            )
+    for key, (multiple, why) in schema.DIVIDES.items():
+        if key in values and multiple in values and values[multiple] % values[key]:
+            return (
+                f"{prefix}{key}={values[key]!r} is not allowed: must divide "
+                f"{prefix}{multiple} ({values[multiple]}){why}"
             )
     return None

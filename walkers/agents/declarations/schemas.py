@@ -243,6 +243,7 @@ class PPOHyperparameters(Hyperparameters):
     AGENT = "walkers.agents.ppo.PPO"
     NAME = "ppo"
     AT_MOST = {"n_minibatches": ("n_steps", ": a minibatch holds at least one step")}
+    DIVIDES = {"num_envs": ("n_steps", ": each env collects n_steps / num_envs of a rollout")}
     lr: float = hp(3.0e-4, POSITIVE, "Adam learning rate (policy and value share one optimizer)")
     anneal_lr: bool = hp(
         True, BOOL, "anneal the learning rate linearly to 0 over the run's total_steps"
@@ -257,6 +258,12 @@ class PPOHyperparameters(Hyperparameters):
         1.0e-5, POSITIVE, "Adam epsilon (the reference's; torch's default is 1e-8)"
     )
     n_steps: int = hp(2048, POSITIVE_INT, "env steps per rollout (one update per rollout)")
+    num_envs: int = hp(
+        1,
+        POSITIVE_INT,
+        "envs stepped together, each n_steps / num_envs steps of every rollout,\n"
+        "acting as one batch (1: the reference's single env; see make bench-envs)",
+    )
     n_epochs: int = hp(10, POSITIVE_INT, "passes over each rollout")
     n_minibatches: int = hp(
         32,

@@ -91,6 +91,7 @@ MAPPING: dict[str, dict[str, str]] = {
         "total_steps": "- (the run's budget: learn(total_timesteps))",
         "adam_eps": "policy_kwargs.optimizer_kwargs.eps",
         "n_steps": "n_steps",
+        "num_envs": "- (1 only: the twin learns on one env)",
         "n_epochs": "n_epochs",
         "n_minibatches": "batch_size = n_steps / n_minibatches",
         "gamma": "gamma (and VecNormalize's return discount)",
@@ -231,6 +232,8 @@ def _ppo(algo: str, hp: Mapping) -> dict:
         raise _refuse(
             algo, "target_kl", hp["target_kl"], "null (SB3's early stop is per minibatch)"
         )
+    if hp.get("num_envs", 1) != 1:
+        raise _refuse(algo, "num_envs", hp["num_envs"], "1 (the twin learns on one env)")
     n_steps, n_minibatches = hp["n_steps"], hp["n_minibatches"]
     if n_steps % n_minibatches:
         raise _refuse(algo, "n_minibatches", n_minibatches, f"a divisor of algo.n_steps={n_steps}")

@@ -81,6 +81,14 @@ bench: $(STAMP)  ## benchmarks: the TD3 update vs a plain eager implementation, 
 bench-throughput: $(STAMP)  ## env steps/s of walkers TD3/DDPG/SAC/CrossQ/PPO (1, 4, 8 envs)/REINFORCE vs Stable-Baselines3 (and sb3-contrib) on Walker2d
 	$(PY) benchmarks/bench_throughput.py $(ARGS)
 
+bench-gpu: $(STAMP)  ## the prepared script for a lent GPU, under 5 minutes: the TD3 update vs a plain one and by phase on CUDA, TD3/SAC/PPO throughput with populations of 1, 5 and 16, DT's step (each part under its own timeout)
+	timeout 90 $(PY) benchmarks/bench_update.py --device cuda --reps 3 --phases
+	timeout 180 $(PY) benchmarks/bench_throughput.py --device cuda --only "TD3,SAC,PPO" --population 1,5,16 --reps 2 --steps 200
+	timeout 30 $(PY) benchmarks/bench_dt.py --devices cuda --reps 2 --steps 10
+
+test-gpu: $(STAMP)  ## on a GPU machine: the agents, populations, PPO, checkpoints and resume with device=auto on CUDA (a CPU machine runs them on the CPU)
+	$(PY) -m pytest -q -n 4 --dist loadscope -m "not cluster and not browser and not faults and not slow" tests/test_algorithms.py tests/test_population.py tests/test_ppo.py tests/test_ppo_vector.py tests/test_checkpoints.py tests/test_seeds_and_resume.py tests/test_health.py tests/test_td3_target.py tests/test_sac.py $(ARGS)
+
 bench-envs: $(STAMP)  ## how N training envs step on this machine's cores: a sequential loop, Gymnasium's SyncVectorEnv and AsyncVectorEnv, and envpool when installed (ARGS="--envs 1,2,4,8")
 	$(PY) benchmarks/bench_envs.py $(ARGS)
 

@@ -222,8 +222,14 @@ class VectorPPOLoop:
                 own[i] = info["final_obs"][i]
             agent.observe_batch(
                 [
-                    Transition(self.obs[i], actions[i], float(rewards[i]), own[i],
-                               bool(terminated[i]), bool(truncated[i]))  # fmt: skip
+                    Transition(
+                        self.obs[i],
+                        actions[i],
+                        float(rewards[i]),
+                        own[i],
+                        bool(terminated[i]),
+                        bool(truncated[i]),
+                    )  # fmt: skip
                     for i in range(n)
                 ]
             )

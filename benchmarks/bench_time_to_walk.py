@@ -47,7 +47,7 @@ def first_at(client: MlflowClient, run, threshold: float) -> tuple[float, int] |
 
 def train_until(args, num_envs: int, seed: int, uri: str) -> tuple[float, int] | None:
     """One run; stopped once it walks. Returns what :func:`first_at` says."""
-    key = f"time_to_walk/ppo/num_envs={num_envs}/seed={seed}"
+    key = f"time_to_walk/ppo/{num_envs}envs/{seed}"
     command = [
         sys.executable, "-m", "walkers.train", "algo=ppo", "env=walker2d", f"seed={seed}",
         f"algo.num_envs={num_envs}", f"total_steps={args.budget}", "torch_threads=1",
@@ -56,7 +56,6 @@ def train_until(args, num_envs: int, seed: int, uri: str) -> tuple[float, int] |
     ]  # fmt: skip
     client = MlflowClient(uri)
     process = subprocess.Popen(command, cwd=PROJECT, stdout=subprocess.DEVNULL)
-    run = None
     while process.poll() is None:
         time.sleep(5)
         experiment = client.get_experiment_by_name(EXPERIMENT)
@@ -69,10 +68,12 @@ def train_until(args, num_envs: int, seed: int, uri: str) -> tuple[float, int] |
             process.send_signal(signal.SIGINT)  # walks: stop it (KILLED, checkpointed)
             process.wait(timeout=120)
     experiment = client.get_experiment_by_name(EXPERIMENT)
-    (run,) = client.search_runs(
+    runs = experiment and client.search_runs(
         [experiment.experiment_id], f"tags.`walkers.job_key` = '{key}'", max_results=1
     )
-    return first_at(client, run, args.threshold)
+    if not runs:
+        raise SystemExit(f"error: the run of {key} did not start: {' '.join(command)}")
+    return first_at(client, runs[0], args.threshold)
 
 
 def main() -> None:

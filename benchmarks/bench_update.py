@@ -1,6 +1,7 @@
 """TD3 update step: walkers vs a plain eager PyTorch TD3 update, interleaved in one process.
 
     make bench            # or: .venv/bin/python benchmarks/bench_update.py --reps 8 [--device cuda]
+                          #     [--phases: walkers' update by phase, host and device time]
 
 Walker2d shapes (17-d observations, 6 actions), 256-256 networks, batch 256, fused Adam in all;
 walkers eager and with ``compile=True`` (its loss computations through torch.compile; CUDA
@@ -89,7 +90,7 @@ class PlainTD3Update:
                         tp.mul_(0.995).add_(p, alpha=0.005)
 
 
-def walkers_update(device: torch.device, compile: bool = False):
+def walkers_agent(device: torch.device, compile: bool = False) -> TD3:
     agent = TD3(
         OBS,
         [-1.0] * ACT,
@@ -104,7 +105,60 @@ def walkers_update(device: torch.device, compile: bool = False):
         agent.observe(Transition(o, a, 1.0, o, False, False))
     for _ in range(4):  # a compiled update compiles here, not inside the timed rounds
         agent.update()
-    return agent.update
+    return agent
+
+
+def walkers_update(device: torch.device, compile: bool = False):
+    return walkers_agent(device, compile).update
+
+
+#: The phases of walkers' TD3 update, by the name the update calls them under (td3.py).
+PHASES = ("sample", "critic_loss", "actor_loss", "skip_nonfinite", "soft_update", "record_health")
+
+
+def phase_profile(device: torch.device, n: int = 50) -> dict[str, tuple[float, float, int]]:
+    """Walkers' eager TD3 update by phase: per update, (host ms, device ms, ops dispatched) of
+    each phase (sampling K buffers, the losses, the guard, the target updates, the counters),
+    the optimizer steps and the backward passes as the rest. Each phase is wrapped in a
+    ``record_function`` range; a range's host time is the Python and dispatch it costs, its
+    device time (CUDA) the kernels it launched."""
+    from torch.profiler import ProfilerActivity, profile, record_function
+
+    import walkers.agents.td3 as td3_module
+
+    agent = walkers_agent(device)
+
+    def ranged(name, fn):
+        def wrapped(*args, **kwargs):
+            with record_function(f"phase::{name}"):
+                return fn(*args, **kwargs)
+
+        return wrapped
+
+    originals = {name: getattr(td3_module, name) for name in ("skip_nonfinite", "soft_update")}
+    for name in ("sample", "critic_loss", "actor_loss", "record_health"):
+        setattr(agent, name, ranged(name, getattr(agent, name)))
+    for name, fn in originals.items():
+        setattr(td3_module, name, ranged(name, fn))
+    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
+    try:
+        with profile(activities=activities) as prof:
+            with record_function("phase::whole update"):
+                for _ in range(n):
+                    agent.update()
+                synchronize(device)
+    finally:
+        for name, fn in originals.items():
+            setattr(td3_module, name, fn)
+    phases = {}
+    for event in prof.key_averages():
+        if event.key.startswith("phase::"):
+            device_ms = getattr(event, "device_time_total", 0.0) / 1e3 / n
+            phases[event.key[len("phase::") :]] = (event.cpu_time_total / 1e3 / n, device_ms)
+    ops = sum(e.count for e in prof.key_averages() if e.key.startswith("aten::")) / n
+    return {name: (*phases.get(name, (0.0, 0.0)), 0) for name in (*PHASES, "whole update")} | {
+        "aten ops dispatched per update": (ops, 0.0, 0)
+    }
 
 
 def time_ms(fn, n: int, device: torch.device) -> float:
@@ -171,6 +225,9 @@ def main():
     parser.add_argument("--reps", type=int, default=6, help="alternating rounds")
     parser.add_argument("--updates", type=int, default=100, help="updates per round")
     parser.add_argument("--device", default="cpu", help="cpu | cuda")
+    parser.add_argument(
+        "--phases", action="store_true", help="also walkers' update by phase (host and device ms)"
+    )
     args = parser.parse_args()
     device = torch.device(args.device)
     torch.manual_seed(0)
@@ -196,6 +253,15 @@ def main():
             print(f"| {kind:<36} | {ms:>9.2f} | {ms / total:>5.0%} |")
         unprofiled = statistics.median(times["walkers TD3"])
         print(f"(the same update unprofiled: {unprofiled:.2f} ms, the median above)")
+    if args.phases:
+        print(
+            f"\nwalkers' eager TD3 update by phase on {device} (torch.profiler ranges, per update;"
+        )
+        print("the optimizer steps and backward passes are the whole less the phases):")
+        print("| phase | host ms (Python + dispatch) | device ms (kernels) |")
+        print("|---|---|---|")
+        for phase, (host, on_device, _) in phase_profile(device).items():
+            print(f"| {phase} | {host:.3f} | {on_device:.3f} |")
 
 
 if __name__ == "__main__":

@@ -1,5 +1,6 @@
 """The algorithm pages quote their code: every quote in a page's "code" column is in the file
-the page names, so a change to the update that leaves its page behind fails here."""
+the page names (or names another file of the project), so a change to the update that leaves its
+page behind fails here."""
 
 from __future__ import annotations
 
@@ -37,7 +38,8 @@ def test_every_quote_in_the_code_column_is_in_the_named_file(page):
     code = source.read_text()
     quotes = code_column_quotes(text)
     assert len(quotes) >= 8, "the page lost its code column"
-    missing = [q for q in quotes if q not in code]
+    # a quote that names a file of the project points there (`walkers/data/rollouts.py`)
+    missing = [q for q in quotes if q not in code and not (PROJECT_ROOT / q).is_file()]
     assert not missing, f"{page.name} quotes lines that {source.name} no longer has: {missing}"
 
 

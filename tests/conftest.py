@@ -16,6 +16,7 @@ from hydra import compose, initialize_config_dir
 from mlflow.tracking import MlflowClient
 
 from walkers import PROJECT_ROOT
+from walkers.agents.base import Transition
 from walkers.data.datasets import OfflineData
 from walkers.data.episodes import Episode
 
@@ -40,7 +41,10 @@ TINY = [
 ]
 
 
-#: The metrics the design names for every online run (DESIGN.md, "Evaluation protocol").
+#: A PPO that updates within a tiny run: rollouts of 128 steps, 2 epochs of 4 minibatches.
+PPO_TINY = ["algo.n_steps=128", "algo.n_minibatches=4", "algo.n_epochs=2"]
+
+#: The metrics every online run logs (docs/training.md, the evaluation protocol).
 DESIGN_METRICS = {
     "eval/return_mean",
     "eval/return_std",
@@ -224,3 +228,25 @@ def tiny_offline_data() -> OfflineData:
         for _ in range(3)
     ]
     return OfflineData("tiny", "Pendulum-v1", episodes, None, None)
+
+
+def feed_members(
+    agent, steps: int = 60, rewards=(1.0, -1.0, 0.5), terminate_every: int | None = None
+) -> None:
+    """``steps`` made-up transitions for each member of an off-policy ``agent`` (acting with
+    exploration, updating after each): member i's reward is ``rewards[i]``, episodes are cut by
+    a time limit every 20 steps and, with ``terminate_every``, end every that many steps."""
+    rng = np.random.default_rng(0)
+    obs = rng.normal(size=(agent.population, agent.obs_dim))
+    for t in range(steps):
+        actions = agent.act_population(obs, explore=True)
+        nxt = rng.normal(size=obs.shape)
+        terminated = terminate_every is not None and t % terminate_every == terminate_every - 1
+        agent.observe_population(
+            [
+                Transition(obs[i], actions[i], float(rewards[i]), nxt[i], terminated, t % 20 == 19)
+                for i in range(agent.population)
+            ]
+        )
+        agent.update()
+        obs = nxt

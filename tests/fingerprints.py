@@ -20,7 +20,7 @@ import sys
 import numpy as np
 import torch
 
-from tests.conftest import compose_cfg
+from tests.conftest import PPO_TINY, compose_cfg
 from walkers.agents.base import Transition
 from walkers.agents.factory import build_agent
 from walkers.training.envs import env_spaces, make_env
@@ -52,7 +52,7 @@ CASES = {
         "algo.renorm_warmup_steps=100",
         *SMALL_OFF_POLICY,
     ],
-    "ppo": ["algo=ppo", "algo.n_steps=128", "algo.n_minibatches=4", "algo.n_epochs=2"],
+    "ppo": ["algo=ppo", *PPO_TINY],
     "reinforce": ["algo=reinforce", "algo.episodes_per_update=1"],
 }
 

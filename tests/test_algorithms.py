@@ -8,7 +8,7 @@ import pytest
 import torch
 from hydra.utils import get_class
 
-from tests.conftest import DESIGN_METRICS, TINY, all_runs, compose_cfg
+from tests.conftest import DESIGN_METRICS, PPO_TINY, TINY, all_runs, compose_cfg
 from tests.fingerprints import CASES
 from walkers.agents.base import Transition
 from walkers.agents.ddpg import DDPG
@@ -20,7 +20,6 @@ from walkers.training.envs import make_env
 
 OFF_POLICY_TINY = ["algo.learning_starts=200", "algo.batch_size=64"]
 REINFORCE_TINY = ["algo.episodes_per_update=1"]
-PPO_TINY = ["algo.n_steps=128", "algo.n_minibatches=4", "algo.n_epochs=2"]  # updates 4 times
 #: tiny settings by algorithm; the replay-based ones take OFF_POLICY_TINY
 TINY_ALGO = {
     "reinforce": REINFORCE_TINY,

@@ -117,15 +117,6 @@ class TinyEnv(gym.Env):
         return np.zeros(OBS_DIM, np.float32), 0.0, False, False, {}
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """Tiny matmuls: one thread (two on two loaded cores spin-wait ~50x slower)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 @pytest.fixture(autouse=True)
 def _keep_global_rngs():
     """SB3 seeds the global torch/numpy/random streams: give them back as found."""

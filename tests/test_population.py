@@ -8,8 +8,14 @@ import numpy as np
 import pytest
 import torch
 
-from tests.conftest import TINY, all_runs, compose_cfg, run_cli, signal_once_checkpointed
-from walkers.agents.base import Transition
+from tests.conftest import (
+    TINY,
+    all_runs,
+    compose_cfg,
+    feed_members,
+    run_cli,
+    signal_once_checkpointed,
+)
 from walkers.agents.factory import defaults_for
 from walkers.agents.td3 import TD3
 from walkers.errors import ConfigError
@@ -24,26 +30,9 @@ SMALL = defaults_for(
 )
 
 
-def feed(agent: TD3, rewards: np.ndarray, steps: int = 60) -> None:
-    """``steps`` identical-shaped transitions per member; member i gets reward ``rewards[i]``."""
-    rng = np.random.default_rng(0)
-    obs = rng.normal(size=(agent.population, 3))
-    for t in range(steps):
-        actions = agent.act_population(obs, explore=True)
-        nxt = rng.normal(size=obs.shape)
-        agent.observe_population(
-            [
-                Transition(obs[i], actions[i], float(rewards[i]), nxt[i], False, t % 20 == 19)
-                for i in range(agent.population)
-            ]
-        )
-        agent.update()
-        obs = nxt
-
-
 def trained(rewards: list[float]) -> TD3:
     agent = TD3(3, [-2.0], [2.0], population=2, seed=0, **SMALL)  # also seeds torch's RNG
-    feed(agent, np.array(rewards))
+    feed_members(agent, rewards=rewards)
     return agent
 
 
@@ -63,7 +52,7 @@ def test_members_learn_independently_and_a_nan_stays_in_its_member():
 
 def test_a_member_cut_out_is_an_ordinary_agent():
     population = TD3(3, [-2.0], [2.0], population=3, seed=0, **SMALL)
-    feed(population, np.array([0.5, 1.0, -1.0]))
+    feed_members(population, rewards=[0.5, 1.0, -1.0])
     single = TD3(3, [-2.0], [2.0], seed=2, **SMALL)
     single.load_state_dict(population.member_state_dict(2, with_buffer=True))
     obs = np.array([0.1, -0.3, 0.7])
@@ -75,13 +64,13 @@ def test_a_member_cut_out_is_an_ordinary_agent():
 
 def test_members_cut_out_and_loaded_back_continue_as_the_same_population():
     original = TD3(3, [-2.0], [2.0], population=3, seed=0, **SMALL)
-    feed(original, np.array([0.5, 1.0, -1.0]))
+    feed_members(original, rewards=[0.5, 1.0, -1.0])
     rebuilt = TD3(3, [-2.0], [2.0], population=3, seed=7, **SMALL)  # other seeds, fresh Adam
     for i in range(3):
         rebuilt.load_member_state_dict(i, original.member_state_dict(i, with_buffer=True))
     for agent in (original, rebuilt):  # the same global RNG for the target-smoothing noise
         torch.manual_seed(1)
-        feed(agent, np.array([0.5, 1.0, -1.0]), steps=30)
+        feed_members(agent, steps=30, rewards=[0.5, 1.0, -1.0])
     for name in ("actor", "critic", "actor_target", "critic_target"):
         rebuilt_state = getattr(rebuilt, name).state_dict()
         for key, value in getattr(original, name).state_dict().items():

@@ -11,7 +11,7 @@ import pytest
 import torch
 from torch import nn
 
-from tests.conftest import TINY, all_runs, compose_cfg, new_store, run_cli
+from tests.conftest import PPO_TINY, TINY, all_runs, compose_cfg, new_store, run_cli
 from walkers.agents.base import Transition
 from walkers.agents.factory import defaults_for
 from walkers.agents.ppo import PPO, ROLLOUT_RESTART_TAG, clipped_surrogate, value_loss
@@ -22,7 +22,7 @@ from walkers.training import checkpoints
 from walkers.training.envs import make_env
 from walkers.training.validate import validate
 
-SMALL = ["algo.n_steps=128", "algo.n_minibatches=4", "algo.n_epochs=2"]
+SMALL = PPO_TINY
 
 # --- GAE by hand ------------------------------------------------------------------------------
 # Five steps, gamma = lambda = 0.5 (gamma * lambda = 0.25), V(s) = s:

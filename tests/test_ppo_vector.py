@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from tests.conftest import all_runs, compose_cfg, new_store, one_line_error, run_cli
+from tests.conftest import PPO_TINY, all_runs, compose_cfg, new_store, one_line_error, run_cli
 from walkers.agents.base import Transition
 from walkers.agents.common.normalization import RewardScaler
 from walkers.agents.factory import defaults_for
@@ -19,8 +19,8 @@ from walkers.train import train
 from walkers.training import checkpoints
 from walkers.training.validate import validate
 
-VECTOR = ["algo=ppo", "env=pendulum", "algo.num_envs=4", "algo.n_steps=128"]
-VECTOR += ["algo.n_minibatches=4", "algo.n_epochs=2", "eval_episodes=1", "log_every=100"]
+VECTOR = ["algo=ppo", "env=pendulum", "algo.num_envs=4", *PPO_TINY]
+VECTOR += ["eval_episodes=1", "log_every=100"]
 VECTOR += ["progress=false"]
 
 

@@ -12,7 +12,7 @@ import pytest
 import torch
 from torch.distributions import Normal, TanhTransform, TransformedDistribution
 
-from tests.conftest import TINY, all_runs, compose_cfg, new_store, run_cli
+from tests.conftest import TINY, all_runs, compose_cfg, feed_members, new_store, run_cli
 from walkers.agents.base import Transition
 from walkers.agents.common.health import skip_nonfinite
 from walkers.agents.common.networks import EnsembleGaussianActor, tanh_log_det_jacobian
@@ -33,7 +33,7 @@ TINY_REPLAY = {
     "buffer_size": 1000,
 }
 SMALL = defaults_for(SAC, **TINY_REPLAY)
-#: CrossQ small, its renormalization past its warm-up within feed()'s 41 updates
+#: CrossQ small, its renormalization past its warm-up within feed_members()'s 41 updates
 SMALL_CROSSQ = defaults_for(
     CrossQ, **TINY_REPLAY, critic_hidden_sizes=[16, 16], renorm_warmup_steps=30, policy_delay=2
 )
@@ -43,23 +43,6 @@ OBS = 3
 
 def small(cls) -> dict:
     return SMALL if cls is SAC else SMALL_CROSSQ
-
-
-def feed(agent: SAC, steps: int = 60, rewards=(1.0, -1.0, 0.5)) -> None:
-    """``steps`` transitions per member (acting with exploration), updating after each."""
-    rng = np.random.default_rng(0)
-    obs = rng.normal(size=(agent.population, OBS))
-    for t in range(steps):
-        actions = agent.act_population(obs, explore=True)
-        nxt = rng.normal(size=obs.shape)
-        agent.observe_population(
-            [
-                Transition(obs[i], actions[i], rewards[i], nxt[i], t % 37 == 36, t % 20 == 19)
-                for i in range(agent.population)
-            ]
-        )
-        agent.update()
-        obs = nxt
 
 
 def parameters(agent: SAC) -> dict[str, torch.Tensor]:
@@ -129,7 +112,7 @@ def test_the_temperature_rises_when_entropy_is_below_target_and_falls_above():
 def test_same_seed_same_run_other_seed_other_run(cls):
     def run(seed):
         agent = cls(OBS, [-2.0], [2.0], seed=seed, **small(cls))
-        feed(agent)
+        feed_members(agent, terminate_every=37)
         return agent, agent.act(np.ones(OBS), explore=True)
 
     (a, action_a), (b, action_b), (c, action_c) = run(0), run(0), run(1)
@@ -145,7 +128,7 @@ def test_same_seed_same_run_other_seed_other_run(cls):
 @SOFT
 def test_a_checkpoint_continues_the_same_experiment(cls):
     original = cls(OBS, [-2.0], [2.0], seed=0, **small(cls))
-    feed(original)
+    feed_members(original, terminate_every=37)
     state = original.state_dict(with_buffer=True)
     assert {"temperature", "alpha_optimizer"} <= set(state) and "actor_target" not in state
     assert ("critic_target" in state) == (cls is SAC)  # CrossQ has no target networks
@@ -153,7 +136,7 @@ def test_a_checkpoint_continues_the_same_experiment(cls):
     restored.load_state_dict(state)
     for agent in (original, restored):  # the update's samples come from torch's global RNG,
         torch.manual_seed(1)  # which a run's checkpoint holds (the trainer's torch_rng)
-        feed(agent, steps=30)
+        feed_members(agent, steps=30, terminate_every=37)
     for key, value in parameters(original).items():
         assert torch.equal(value, parameters(restored)[key]), key
     alpha_moments = [s["exp_avg"] for s in restored.alpha_optimizer.state.values()]
@@ -165,7 +148,7 @@ def test_a_checkpoint_continues_the_same_experiment(cls):
 @SOFT
 def test_population_members_cut_out_and_loaded_back(cls):
     population = cls(OBS, [-2.0], [2.0], population=3, seed=0, **small(cls))
-    feed(population)
+    feed_members(population, terminate_every=37)
     alphas = population.temperature()
     assert len(set(alphas.tolist())) == 3  # each member tunes its own temperature
     single = cls(OBS, [-2.0], [2.0], seed=2, **small(cls))
@@ -182,7 +165,7 @@ def test_population_members_cut_out_and_loaded_back(cls):
         rebuilt.load_member_state_dict(i, population.member_state_dict(i, with_buffer=True))
     for agent in (population, rebuilt):
         torch.manual_seed(1)
-        feed(agent, steps=30)
+        feed_members(agent, steps=30, terminate_every=37)
     for key, value in parameters(population).items():
         assert torch.equal(value, parameters(rebuilt)[key]), key
 
@@ -193,7 +176,7 @@ def test_a_nan_stays_in_its_member(cls):
         agent = cls(
             OBS, [-2.0], [2.0], population=2, seed=0, **small(cls)
         )  # also seeds torch's RNG
-        feed(agent, rewards=rewards)
+        feed_members(agent, rewards=rewards, terminate_every=37)
         return agent
 
     clean, poisoned = trained((1.0, -1.0)), trained((1.0, float("nan")))  # member 1: NaN rewards

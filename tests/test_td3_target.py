@@ -35,15 +35,6 @@ M_OBS = 32.0  # the actors' hidden offset: s + M > 0 for every observation used 
 SATURATED = 20.0  # tanh(20) == 1.0 in float32: pi(+-20) is exactly the bound
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """Tiny matmuls: one thread (two on two loaded cores spin-wait)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 def make_td3(population: int = 1, low=(-2.0,), high=(2.0,), **overrides) -> TD3:
     hp = defaults_for(
         TD3,

@@ -1,4 +1,5 @@
-"""The run-summary metrics an Optuna sweep may optimize, and which way is better for each.
+"""The run-summary metrics: how a run's ``final/*`` are computed from its evaluations
+(:func:`run_summary`), which of them an Optuna sweep may optimize, and which way is better.
 
 A sweep's direction follows its ``optimized_metric`` through this one table
 (:mod:`walkers.tuning.sweeper`), so no study can reward slowness by maximizing
@@ -6,6 +7,11 @@ A sweep's direction follows its ``optimized_metric`` through this one table
 """
 
 from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
 
 from walkers.errors import ConfigError
 
@@ -39,3 +45,34 @@ def metric_direction(metric: str) -> str:
         raise ConfigError(
             f"optimized_metric={metric!r} is not allowed: must be one of {allowed_metrics()}"
         ) from None
+
+
+def auc(eval_means: Sequence[float]) -> float:
+    """Area under the learning curve, normalized: the mean eval return over the whole run.
+
+    Evaluations are equally spaced in env steps, so this is the rate of learning: two agents
+    with the same final return differ here when one got there sooner.
+    """
+    return float(np.mean(eval_means))
+
+
+def steps_to_threshold(
+    steps: Sequence[int], eval_means: Sequence[float], threshold: float
+) -> float:
+    """First env step whose eval mean return reaches ``threshold``; ``inf`` if none did."""
+    for step, value in zip(steps, eval_means, strict=True):
+        if value >= threshold:
+            return float(step)
+    return math.inf
+
+
+def run_summary(steps: Sequence[int], eval_means: Sequence[float], threshold: float) -> dict:
+    """The ``final/*`` metrics of a run from its evaluation history."""
+    if len(eval_means) == 0:
+        return {}
+    return {
+        "final/return_mean": float(eval_means[-1]),
+        "final/return_last10": float(np.mean(eval_means[-10:])),
+        "final/auc": auc(eval_means),
+        "final/steps_to_threshold": steps_to_threshold(steps, eval_means, threshold),
+    }

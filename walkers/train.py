@@ -25,17 +25,27 @@ from walkers.cli import exit_on_bad_overrides, renamed_overrides, stop_cleanly_o
 from walkers.errors import CheckpointError, ConfigError
 from walkers.tracking.names import MULTIRUN_JOB_TAG
 
-__all__ = ["main"]  # and `train`, on first use (below)
+__all__ = ["main", "train"]
 
 
-def __getattr__(name: str):
-    """``train`` (the session) is imported on first use: torch and MLflow take seconds to
-    import, and a typo on the command line is refused before either is needed."""
-    if name == "train":
-        from walkers.training.session import train
+def train(cfg: DictConfig, overrides: list[str] | tuple = (), tags: dict | None = None) -> float:
+    """The training session (:func:`walkers.training.session.train`), a sweep's trial reporting
+    each evaluation to its Optuna study (pruning included). Imported on first use: torch and
+    MLflow take seconds to import, and a typo on the command line is refused before either is
+    needed."""
+    from walkers.training.session import train as session
 
-        return train
-    raise AttributeError(f"module 'walkers.train' has no attribute {name!r}")
+    return session(cfg, overrides, tags, reporter=trial_reporter)
+
+
+def trial_reporter(cfg: DictConfig):
+    """What a run's evaluations report to: its Optuna trial's reporter, or None outside a
+    sweep."""
+    if cfg.trial.id is None:
+        return None
+    from walkers.tuning.trial import TrialReporter
+
+    return TrialReporter(cfg.trial, cfg.get("pruner"), cfg.seed, cfg.seeds_per_trial)
 
 
 def parallel_jobs() -> int:
@@ -62,7 +72,6 @@ def fail(message: str, exit_code: int):
 @hydra.main(config_path=str(CONF_DIR), config_name="train", execution_whitelist=["walkers.*"])
 def main(cfg: DictConfig) -> float:
     from walkers.training.bookkeeping import TrainingDiverged
-    from walkers.training.session import train
 
     stop_cleanly_on_signals()  # in a worker process too: SIGTERM ends the run like Ctrl-C
     hydra_cfg = HydraConfig.get()

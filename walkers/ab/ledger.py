@@ -19,9 +19,10 @@ from pathlib import Path
 from walkers import tracking
 from walkers.ab.rounds import Scores, Standing
 from walkers.ab.spec import StudySpec
-from walkers.analysis.arms import arm_config, differing_keys, run_params
+from walkers.analysis.arms import arm_config, run_params
 from walkers.analysis.sequential import Design
 from walkers.errors import ConfigError
+from walkers.tracking import differing_keys
 
 log = logging.getLogger("walkers")
 

@@ -15,6 +15,8 @@ import difflib
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 
+from walkers.tracking import ABSENT, differing_keys
+
 #: Config keys (MLflow params; a trailing "." is the whole subtree) that do not make an arm:
 #: a run's results are the same for any value of these, so runs differing only here are seeds of
 #: one arm. Everything else (algo.*, env.* but these, total_steps, eval_every, eval_episodes,
@@ -51,8 +53,6 @@ NOT_THE_EXPERIMENT = (
 #: resolved to, so an ``auto`` run on a GPU machine is not told apart from a CPU one.
 CPU_DEVICES = ("cpu", "auto")
 
-#: How a key a run does not have is shown (a key added to the config after the run).
-ABSENT = "(not set)"
 #: Keys added to the config later, with the value every run from before had: such a run is in
 #: the same arm as a new run with that value (not split off as "(not set)").
 LATER_KEYS = {"impl": "walkers"}  # before impl=sb3 existed, walkers trained every run
@@ -85,12 +85,6 @@ def arm_config(params: Mapping[str, str], exclude: Iterable[str] = ()) -> dict[s
         if key not in excluded
         and (not is_not_the_experiment(key) or (key == "device" and value not in CPU_DEVICES))
     }
-
-
-def differing_keys(configs: Sequence[Mapping[str, str]]) -> list[str]:
-    """Keys whose value is not the same in every config (missing counts as a value), sorted."""
-    keys = set().union(*configs) if configs else set()
-    return sorted(k for k in keys if len({c.get(k, ABSENT) for c in configs}) > 1)
 
 
 def _parsed(value: str):

@@ -1,6 +1,7 @@
 """Learning-curve summaries and the A/B statistics (Agarwal et al. 2021 definitions, with SciPy).
 
-Per run: :func:`auc`, :func:`steps_to_threshold`, :func:`run_summary` (the ``final/*`` metrics).
+Per run: :func:`auc`, :func:`steps_to_threshold`, :func:`run_summary` (the ``final/*`` metrics,
+defined in :mod:`walkers.metrics`, where the trainer reads them too).
 Across seeds: :func:`iqm` with a stratified-bootstrap CI (:func:`iqm_ci`), the probability of
 improvement P(A > B) (:func:`probability_of_improvement`, :func:`poi_ci`), a Mann-Whitney
 p-value, and a bootstrap band for mean learning curves (:func:`mean_band`). rliable's
@@ -15,39 +16,12 @@ from collections.abc import Sequence
 import numpy as np
 from scipy import stats as sps
 
+from walkers.metrics import auc, run_summary, steps_to_threshold
+
+__all__ = ["auc", "run_summary", "steps_to_threshold"]  # and the statistics across seeds below
+
 #: Percentile bootstrap, as rliable: stable for the tiny samples (3-10 seeds) RL studies have.
 BOOTSTRAP_METHOD = "percentile"
-
-
-def auc(eval_means: Sequence[float]) -> float:
-    """Area under the learning curve, normalized: the mean eval return over the whole run.
-
-    Evaluations are equally spaced in env steps, so this is the rate of learning: two agents
-    with the same final return differ here when one got there sooner.
-    """
-    return float(np.mean(eval_means))
-
-
-def steps_to_threshold(
-    steps: Sequence[int], eval_means: Sequence[float], threshold: float
-) -> float:
-    """First env step whose eval mean return reaches ``threshold``; ``inf`` if none did."""
-    for step, value in zip(steps, eval_means, strict=True):
-        if value >= threshold:
-            return float(step)
-    return math.inf
-
-
-def run_summary(steps: Sequence[int], eval_means: Sequence[float], threshold: float) -> dict:
-    """The ``final/*`` metrics of a run from its evaluation history."""
-    if len(eval_means) == 0:
-        return {}
-    return {
-        "final/return_mean": float(eval_means[-1]),
-        "final/return_last10": float(np.mean(eval_means[-10:])),
-        "final/auc": auc(eval_means),
-        "final/steps_to_threshold": steps_to_threshold(steps, eval_means, threshold),
-    }
 
 
 # --- across seeds ---------------------------------------------------------------------------

@@ -13,8 +13,10 @@ from importlib import import_module
 #: ``walkers.tracking.names`` (or this face) imports no MLflow.
 _HOMES = {
     "walkers.tracking.client": (
+        "ABSENT",
         "QUICK_HTTP_RETRIES",
         "connect",
+        "differing_keys",
         "download_checkpoint",
         "flatten",
         "get_or_create_experiment",

@@ -21,7 +21,7 @@ import torch
 
 from walkers.agents.base import Agent
 from walkers.agents.common.health import SKIPPED_IN_A_ROW
-from walkers.analysis.stats import run_summary
+from walkers.metrics import run_summary
 from walkers.seeding import (
     env_rng_state,
     eval_start_seeds,

@@ -13,8 +13,8 @@ from omegaconf import DictConfig, OmegaConf
 
 from walkers import PROJECT_ROOT, tracking
 from walkers.agents.fingerprint import CODE_DIGEST_TAG, code_digest
+from walkers.secrets import redacted
 from walkers.training.evaluation import offline_references
-from walkers.tuning.studies import redacted
 
 #: Tag: the versions of the packages that compute a run (:data:`PACKAGES`).
 PACKAGES_TAG = "walkers.packages"

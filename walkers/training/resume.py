@@ -8,9 +8,8 @@ from __future__ import annotations
 
 from omegaconf import DictConfig, OmegaConf
 
-from walkers.analysis.arms import differing_keys
 from walkers.errors import ConfigError
-from walkers.tracking import flatten
+from walkers.tracking import differing_keys, flatten
 from walkers.training.run import TrainingRun
 
 #: Keys a resumed run takes from the new command line; everything else comes from its checkpoint.

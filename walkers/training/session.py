@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -40,14 +41,24 @@ from walkers.training.provenance import MEMBER_TAG, POPULATION_TAG, shareable
 from walkers.training.run import ENV_STEP_AXIS, GRADIENT_STEP_AXIS, TrainingRun, ending
 from walkers.training.settings import RunSettings
 from walkers.training.validate import check_environment, is_offline, num_envs, validate
-from walkers.tuning.trial import TrialReporter
 
 log = logging.getLogger("walkers")
 
 
-def train(cfg: DictConfig, overrides: list[str] | tuple = (), tags: dict | None = None) -> float:
+#: What a run's evaluations report to, given the run's final config: ``(step, eval mean) ->
+#: stop?`` (an Optuna trial's reporter, made by walkers.train above this package), or None.
+EvaluationReporter = Callable[[DictConfig], Callable[[int, float], bool] | None]
+
+
+def train(
+    cfg: DictConfig,
+    overrides: list[str] | tuple = (),
+    tags: dict | None = None,
+    reporter: EvaluationReporter | None = None,
+) -> float:
     """Train as ``cfg`` says; ``overrides`` are the command-line overrides (used by resume);
-    ``tags`` go on the run(s), new or resumed (a multirun job's place in its multirun)."""
+    ``tags`` go on the run(s), new or resumed (a multirun job's place in its multirun);
+    ``reporter`` makes what a single run's evaluations report to (a sweep's trial)."""
     resume.check_resume_given(cfg.resume)
     check_environment(cfg)  # before anything is created
     if not cfg.resume:
@@ -77,13 +88,15 @@ def train(cfg: DictConfig, overrides: list[str] | tuple = (), tags: dict | None 
         values = [s.get(cfg.optimized_metric, math.nan) for s in summaries]
         log.info("%s per member = %s", cfg.optimized_metric, values)
         return float(np.mean(values))
-    summary = _train_single(cfg, client, state, tags or {})
+    summary = _train_single(cfg, client, state, tags or {}, reporter)
     value = summary.get(cfg.optimized_metric, math.nan)
     log.info("%s = %s", cfg.optimized_metric, value)
     return value
 
 
-def _train_single(cfg: DictConfig, client, state: dict | None, tags: dict) -> dict[str, float]:
+def _train_single(
+    cfg: DictConfig, client, state: dict | None, tags: dict, reporter: EvaluationReporter | None
+) -> dict[str, float]:
     data = load_dataset(cfg) if is_offline(cfg) else None
     vectorized = num_envs(cfg) > 1 and cfg.impl == "walkers"
     if data is not None:  # offline agents never step an env
@@ -114,10 +127,8 @@ def _train_single(cfg: DictConfig, client, state: dict | None, tags: dict) -> di
                 else {}
             )
             book = _book(cfg, runs[0], agent, env, eval_env, axis, video_env, **offline)
-            if cfg.trial.id is not None:  # a job of an Optuna study
-                book.on_evaluation = TrialReporter(
-                    cfg.trial, cfg.get("pruner"), cfg.seed, cfg.seeds_per_trial
-                )
+            if reporter is not None:  # e.g. a job of an Optuna study
+                book.on_evaluation = reporter(cfg)
             if state is not None:
                 book.restore(state)
                 log.info("resuming run %s at step %d", runs[0].run_id, book.progress.step)

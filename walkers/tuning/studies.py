@@ -30,10 +30,10 @@ import optuna
 from optuna.exceptions import StorageInternalError
 from optuna.storages import RDBStorage, RetryHeartbeatStaleTrialCallback
 from optuna.trial import FrozenTrial, TrialState
-from sqlalchemy.engine import make_url
 from sqlalchemy.exc import OperationalError
 
 from walkers.errors import ConfigError
+from walkers.secrets import has_password, redacted
 from walkers.tuning import optuna_internals
 
 log = logging.getLogger("walkers")
@@ -77,24 +77,6 @@ def open_storage(
             "postgresql+psycopg://<user>:<password>@<host>/<database> (optuna=postgres reads "
             "WALKERS_OPTUNA_STORAGE)"
         ) from None
-
-
-def redacted(url: str | None) -> str | None:
-    """A storage URL fit for logs, MLflow params and reports: its password hidden."""
-    if not url:
-        return url
-    try:
-        return make_url(url).render_as_string(hide_password=True)
-    except Exception:  # not a URL SQLAlchemy reads (e.g. "None"): nothing to hide
-        return url
-
-
-def has_password(url: str | None) -> bool:
-    """Whether a storage URL carries a password (a secret that must not reach any file)."""
-    try:
-        return bool(url) and make_url(url).password is not None
-    except Exception:  # not a URL SQLAlchemy reads: nothing to hide
-        return False
 
 
 def check_passed_by_reference(url: str | None) -> None:

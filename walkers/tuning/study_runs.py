@@ -13,10 +13,11 @@ from omegaconf import DictConfig, OmegaConf
 from optuna.trial import TrialState
 
 from walkers import tracking
+from walkers.secrets import redacted
 from walkers.tracking.hydra_callbacks import stop_remote_jobs
 from walkers.tuning.objective import DONE, trials_done
 from walkers.tuning.optuna_internals import stored_trial
-from walkers.tuning.studies import original_number, redacted
+from walkers.tuning.studies import original_number
 
 log = logging.getLogger("walkers")
 

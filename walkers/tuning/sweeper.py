@@ -57,6 +57,7 @@ from optuna.trial import TrialState
 
 from walkers import tracking
 from walkers.errors import ConfigError
+from walkers.secrets import redacted
 from walkers.tracking.hydra_callbacks import missing_on_ray_nodes
 from walkers.tuning.objective import check_objective, record_outcome, sweep_direction, trials_done
 from walkers.tuning.optuna_internals import stored_trial, trial_id
@@ -72,7 +73,6 @@ from walkers.tuning.studies import (
     open_storage,
     original_number,
     patiently,
-    redacted,
     running,
     study_lock,
     study_uid,

@@ -1,4 +1,5 @@
-"""The Agent interface: all the trainer, evaluator and checkpoints know about an algorithm.
+"""The Policy and Agent interfaces: all the trainer, evaluator and checkpoints know about an
+algorithm. A :class:`Policy` acts and checkpoints; an :class:`Agent` is a policy that learns.
 
 An agent never sees Hydra, MLflow or the environment loop. It is built from plain
 hyperparameters plus the environment's shapes (``obs_dim``, ``action_low``, ``action_high``),
@@ -13,7 +14,13 @@ the trainer calls only ``update`` in a loop. Sequence policies also see episode 
 rewards while they act (``begin_episode``, ``record_reward``); the others ignore both.
 
 Stable-Baselines3's twins (``impl=sb3``, :mod:`walkers.agents.sb3.twin`) learn inside SB3's
-own loop: of this interface they act greedily (evaluations, videos) and checkpoint.
+own loop, and a population's member (:class:`~walkers.agents.common.population.MemberAgent`)
+through its population: both are policies, acting greedily (evaluations, videos) and
+checkpointing.
+
+What the trainer may ask beyond that, each class declares (:class:`Policy`'s flags), and nothing
+probes for methods: ``offline``, ``trains_populations``, ``several_envs``,
+``return_conditioned``, ``trains_itself``.
 
 ``update`` returns detached scalar tensors (not floats) so the hot loop never forces a
 device sync; the trainer converts them only when it logs.
@@ -42,11 +49,22 @@ class Transition:
         return self.terminated or self.truncated
 
 
-class Agent(ABC):
-    """Base for all algorithms. Subclasses keep their networks and optimizers as attributes."""
+class Policy(ABC):
+    """What acts: greedy or exploring actions, episode hooks, checkpoints; and what the class
+    declares it can do beyond that (the flags, read by the trainer and the config checks)."""
 
     device: torch.device
-    offline: bool = False  # learns from a fixed dataset (``dataset=``), never from env steps
+    #: learns from a fixed dataset (``dataset=``), never from env steps
+    offline: bool = False
+    #: trains K seeds in one agent (``population=K``: ``act_population``,
+    #: ``observe_population``, ``member_policy``)
+    trains_populations: bool = False
+    #: acts on several envs' observations as one batch (``observe_batch``; ``num_envs``)
+    several_envs: bool = False
+    #: acts toward a target return (``target_return``, ``target_returns``)
+    return_conditioned: bool = False
+    #: learns inside its own library's loop (SB3's twins): the trainer only watches it
+    trains_itself: bool = False
 
     def begin_episode(self) -> None:  # noqa: B027 (an optional hook)
         """A new episode starts (called by rollouts before the first ``act``)."""
@@ -59,14 +77,6 @@ class Agent(ABC):
         """Action for one observation in the env's units; ``explore=False``: the greedy policy."""
 
     @abstractmethod
-    def observe(self, transition: Transition) -> None:
-        """Record one environment step."""
-
-    @abstractmethod
-    def update(self) -> dict[str, torch.Tensor]:
-        """Learn from what was observed if it is time to; return named scalar diagnostics."""
-
-    @abstractmethod
     def state_dict(self, with_buffer: bool = False) -> dict:
         """Everything needed to resume: networks, optimizers, counters, RNG states."""
 
@@ -77,6 +87,21 @@ class Agent(ABC):
         """After :meth:`load_state_dict`: what the resumed agent could not restore exactly, as
         run tags (e.g. a replay buffer it has to refill); empty when the resume is exact."""
         return {}
+
+
+class Agent(Policy):
+    """A policy that learns: every algorithm. Subclasses keep their networks and optimizers as
+    attributes."""
+
+    def observe(self, transition: Transition) -> None:  # noqa: B027 (offline: never called)
+        """Record one environment step (an online agent; an offline one learns from its dataset
+        and is never shown one)."""
+        raise NotImplementedError(f"{type(self).__name__} learns offline: it observes nothing")
+
+    @abstractmethod
+    def update(self) -> dict[str, torch.Tensor]:
+        """Learn from what was observed (online) or from the dataset (offline) if it is time
+        to; return named scalar diagnostics."""
 
 
 def resolve_device(device: str) -> torch.device:

@@ -22,7 +22,7 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
-from walkers.agents.base import Agent, Transition, resolve_device
+from walkers.agents.base import Agent, resolve_device
 from walkers.agents.common.health import NonFiniteGuard, clip_or_skip
 from walkers.agents.common.transformer import (
     DecisionTransformerModel,
@@ -38,6 +38,7 @@ class DecisionTransformer(Agent):
     walkers.agents.declarations.schemas."""
 
     offline = True
+    return_conditioned = True  # acts toward target_return; evaluated per target_returns
 
     def __init__(
         self,
@@ -153,9 +154,6 @@ class DecisionTransformer(Agent):
         rtg = self._context["returns_to_go"]
         rtg.append(rtg[-1] - reward / self.return_scale)
         self._step += 1
-
-    def observe(self, transition: Transition) -> None:
-        """Offline: the agent learns from its dataset, not from what it sees."""
 
     # --- learning ---------------------------------------------------------------------------
     def update(self) -> dict[str, torch.Tensor]:

@@ -84,6 +84,8 @@ class PPO(Agent):
     """Hyperparameters: declared, with the MuJoCo reference defaults, in
     walkers.agents.declarations.schemas."""
 
+    several_envs = True  # algo.num_envs: a rollout from several envs acting as one batch
+
     def __init__(
         self,
         obs_dim: int,

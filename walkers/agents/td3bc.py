@@ -40,6 +40,7 @@ class TD3BC(TD3):
     buffer is the dataset."""
 
     offline = True
+    trains_populations = False  # one member: the buffer is the dataset
 
     def __init__(
         self,
@@ -101,7 +102,8 @@ class TD3BC(TD3):
         return super().act_population(self.normalize(obs), explore=False)
 
     def observe_population(self, transitions) -> None:
-        """Offline: the agent learns from its dataset, not from what it sees."""
+        """Offline: the agent learns from its dataset and is never shown a step."""
+        raise NotImplementedError("TD3BC learns offline: it observes nothing")
 
     # --- learning: TD3's update, with this actor loss ---------------------------------------------
     def actor_loss(self, b: Batch) -> torch.Tensor:

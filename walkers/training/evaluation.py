@@ -98,7 +98,7 @@ def scored_greedy(normalize: Normalize) -> Evaluation:
 def offline_evaluation(agent: Agent, normalize: Normalize) -> Evaluation:
     """How an offline agent is evaluated: per target return if it is return-conditioned (DT),
     else greedily; both with normalized scores."""
-    if hasattr(agent, "target_returns"):
+    if agent.return_conditioned:
         return per_target_return(normalize)
     return scored_greedy(normalize)
 

@@ -81,7 +81,7 @@ def evaluate(cfg: DictConfig) -> dict:
     try:
         run_cfg, agent = agent_from_checkpoint(state, env, cfg.device)
         if cfg.target_return is not None:
-            if not hasattr(agent, "target_return"):
+            if not agent.return_conditioned:
                 raise ConfigError(
                     f"target_return={cfg.target_return!r} is not allowed: the run's algorithm "
                     f"({run_cfg.algo.name}) is not return-conditioned (only dt is)"

@@ -2,7 +2,7 @@
 envs and the agent, run the loop, end every run with its status; return the optimized metric.
 
     single run:   envs + agent -> TrainingRun.open -> RunBook -> train_online | _offline | _sb3
-                  (algo.num_envs > 1: a vector env -> train_vectorized)
+                  (an agent declaring several_envs, num_envs > 1: a vector env -> train_vectorized)
     population:   K members' envs + one agent -> K TrainingRuns and books -> train_population
 
 Every run opened is ended by :func:`walkers.training.run.ending`, whatever way the session ends.
@@ -20,7 +20,6 @@ from omegaconf import DictConfig, OmegaConf
 
 from walkers import tracking
 from walkers.agents.factory import build_agent
-from walkers.agents.sb3.twin import SB3Twin
 from walkers.errors import ConfigError
 from walkers.training import resume
 from walkers.training.bookkeeping import RunBook
@@ -40,7 +39,7 @@ from walkers.training.loops import (
 from walkers.training.provenance import MEMBER_TAG, POPULATION_TAG, shareable
 from walkers.training.run import ENV_STEP_AXIS, GRADIENT_STEP_AXIS, TrainingRun, ending
 from walkers.training.settings import RunSettings
-from walkers.training.validate import check_environment, is_offline, num_envs, validate
+from walkers.training.validate import check_environment, is_offline, validate
 
 log = logging.getLogger("walkers")
 
@@ -98,20 +97,19 @@ def _train_single(
     cfg: DictConfig, client, state: dict | None, tags: dict, reporter: EvaluationReporter | None
 ) -> dict[str, float]:
     data = load_dataset(cfg) if is_offline(cfg) else None
-    vectorized = num_envs(cfg) > 1 and cfg.impl == "walkers"
-    if data is not None:  # offline agents never step an env
-        env = None
-    else:
-        env = make_vector_env(cfg.env, num_envs(cfg)) if vectorized else make_env(cfg.env)
     eval_env = make_env(cfg.env, shaping=False)
-    video_env = (
-        make_env(cfg.env, shaping=False, render_mode="rgb_array") if cfg.video_every else None
-    )
+    env = video_env = None
     try:
         agent = build_agent(
             cfg, env_spaces(eval_env), **({"dataset": data} if data is not None else {})
         )
-        if isinstance(agent, SB3Twin):
+        # the training env(s), as the agent declares it learns (offline: none)
+        several_envs = agent.several_envs and agent.num_envs > 1
+        if not agent.offline:
+            env = make_vector_env(cfg.env, agent.num_envs) if several_envs else make_env(cfg.env)
+        if cfg.video_every:
+            video_env = make_env(cfg.env, shaping=False, render_mode="rgb_array")
+        if agent.trains_itself:
             agent.attach(env, cfg.total_steps)  # SB3's model is built on its training env
         axis = GRADIENT_STEP_AXIS if data is not None else ENV_STEP_AXIS
         references = offline_references(cfg.env, data) if data is not None else None
@@ -132,11 +130,11 @@ def _train_single(
             if state is not None:
                 book.restore(state)
                 log.info("resuming run %s at step %d", runs[0].run_id, book.progress.step)
-            if data is not None:
+            if agent.offline:
                 summary = train_offline(agent, book)
-            elif isinstance(agent, SB3Twin):
+            elif agent.trains_itself:
                 summary = train_sb3(agent, book)
-            elif vectorized:
+            elif several_envs:
                 summary = train_vectorized(agent, env, book)
             else:
                 summary = train_online(agent, env, book)

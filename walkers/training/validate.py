@@ -55,14 +55,11 @@ def is_offline(cfg: DictConfig) -> bool:
 def _check_population(cfg: DictConfig) -> None:
     from hydra.utils import get_class
 
-    def populates(agent_class) -> bool:  # K members in one agent, each stepping its own env
-        return hasattr(agent_class, "act_population") and not getattr(agent_class, "offline", False)
-
     k = cfg.get("population", 1)
     if k == 1:
         return
-    if not populates(get_class(cfg.algo._target_)):
-        able = [n for n, s in SCHEMAS.items() if populates(get_class(s.AGENT))]
+    if not get_class(cfg.algo._target_).trains_populations:  # declared by the class
+        able = [n for n, s in SCHEMAS.items() if get_class(s.AGENT).trains_populations]
         offline = " (an offline run trains one seed: use a multirun over seeds)"
         raise ConfigError(
             f"population={k} is not allowed with algo={cfg.algo.name}: "

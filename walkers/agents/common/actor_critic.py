@@ -54,6 +54,7 @@ class ActorCritic(Agent):
     and :meth:`policy`, and lists its per-member parts beyond the core's (:meth:`member_cuts`)."""
 
     num_critics = 2  # critics per member
+    trains_populations = True  # population=K: K seeds, one batched matmul a layer
     #: the methods ``compile=True`` runs through torch.compile (the losses, forward and backward)
     compiled_losses: tuple[str, ...] = ("critic_loss", "actor_loss")
 

@@ -18,7 +18,7 @@ from typing import Protocol
 import numpy as np
 import torch
 
-from walkers.agents.base import Agent, Transition
+from walkers.agents.base import Policy
 from walkers.agents.common.health import NonFiniteGuard
 from walkers.agents.common.noise import GaussianNoise
 from walkers.data.replay import ReplayBuffer
@@ -126,7 +126,7 @@ def _load_optimizer_member(optimizer: torch.optim.Optimizer, cut: slice, saved_s
         live["step"].copy_(saved["step"])
 
 
-class MemberAgent(Agent):
+class MemberAgent(Policy):
     """Member ``index`` of a population seen as an agent of its own: it acts greedily
     (evaluations) and checkpoints as a single agent; the population does the learning."""
 
@@ -140,12 +140,6 @@ class MemberAgent(Agent):
             obs_t = torch.as_tensor(obs, dtype=torch.float32, device=self.device)
             action = self.population.actor(obs_t.view(1, 1, -1), members=self.members)[0, 0]
         return action.cpu().numpy().astype(np.float32)
-
-    def observe(self, transition: Transition) -> None:
-        raise NotImplementedError("a population member observes through the population")
-
-    def update(self) -> dict[str, torch.Tensor]:
-        raise NotImplementedError("a population member learns through the population")
 
     def state_dict(self, with_buffer: bool = False) -> dict:
         return member_state_dict(self.population, self.index, with_buffer)

@@ -20,7 +20,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from walkers.agents.base import Agent, resolve_device
+from walkers.agents.base import Policy, resolve_device
 from walkers.agents.sb3.arguments import sb3_arguments
 from walkers.errors import ConfigError
 from walkers.seeding import stream_seeds
@@ -63,12 +63,15 @@ def reference_class(path: str) -> type:
         raise ConfigError(f"impl=sb3 needs {module}: {INSTALL_HINT}") from None
 
 
-class SB3Twin(Agent):
+class SB3Twin(Policy):
     """SB3's twin of walkers algorithm ``algo`` with walkers hyperparameters ``hyperparameters``.
 
     The model is created by :meth:`attach` (training: SB3 needs its env) or by
-    :meth:`load_state_dict` (a checkpoint: acting needs no env).
+    :meth:`load_state_dict` (a checkpoint: acting needs no env). It learns inside SB3's own
+    ``learn()`` (``walkers.training.loops.train_sb3``): of walkers' interfaces it is a policy.
     """
+
+    trains_itself = True
 
     def __init__(
         self,
@@ -165,12 +168,6 @@ class SB3Twin(Agent):
         return np.clip(
             (obs - rms.mean) / np.sqrt(rms.var + s["epsilon"]), -s["clip_obs"], s["clip_obs"]
         ).astype(np.float32)
-
-    def observe(self, transition) -> None:
-        raise NotImplementedError("an SB3 twin observes inside SB3's own loop")
-
-    def update(self) -> dict[str, torch.Tensor]:
-        raise NotImplementedError("an SB3 twin learns inside SB3's own loop")
 
     def latest_losses(self) -> dict[str, torch.Tensor]:
         """SB3's latest recorded training values, under walkers' metric names."""

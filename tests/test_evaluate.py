@@ -11,7 +11,7 @@ from PIL import Image, ImageSequence
 from tests.conftest import TINY, all_runs, compose_cfg, new_store, one_line_error, run_cli
 from walkers.seeding import eval_start_seeds, held_out_start_seeds
 from walkers.train import train
-from walkers.training.policy_replay import evaluate
+from walkers.training.checkpoint_evaluation import evaluate
 
 PENDULUM_STEPS = 200  # Pendulum-v1 episodes always last 200 steps
 

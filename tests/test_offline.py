@@ -32,7 +32,7 @@ from walkers.errors import ConfigError
 from walkers.train import train
 from walkers.training import checkpoints
 from walkers.training.checkpoints import agent_from_checkpoint
-from walkers.training.collection import collect, play
+from walkers.training.dataset_recording import collect, play
 from walkers.training.envs import make_env
 from walkers.training.evaluation import offline_references
 from walkers.training.validate import validate

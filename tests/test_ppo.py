@@ -250,7 +250,7 @@ def test_reported_training_returns_are_the_envs_own(ppo_run):
 
 
 def test_evaluate_replays_the_final_evaluation_with_the_frozen_statistics(ppo_run, tmp_path):
-    from walkers.training.policy_replay import evaluate
+    from walkers.training.checkpoint_evaluation import evaluate
 
     run = ppo_run["run"]
     final = ppo_run["client"].get_metric_history(run.info.run_id, "eval/return_mean")[-1]
@@ -279,7 +279,7 @@ def test_evaluate_replays_the_final_evaluation_with_the_frozen_statistics(ppo_ru
 
 
 def test_collect_records_a_ppo_policy(ppo_run, monkeypatch):
-    from walkers.training.collection import collect
+    from walkers.training.dataset_recording import collect
 
     monkeypatch.setenv("MINARI_DATASETS_PATH", str(ppo_run["path"] / "minari"))
     stats = collect(

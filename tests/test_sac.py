@@ -21,10 +21,10 @@ from walkers.agents.factory import defaults_for
 from walkers.agents.sac import SAC
 from walkers.train import train
 from walkers.training import checkpoints
+from walkers.training.checkpoint_evaluation import evaluate
 from walkers.training.checkpoints import agent_from_checkpoint
-from walkers.training.collection import collect
+from walkers.training.dataset_recording import collect
 from walkers.training.envs import make_env
-from walkers.training.policy_replay import evaluate
 
 TINY_REPLAY = {
     "batch_size": 16,

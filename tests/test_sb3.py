@@ -29,8 +29,8 @@ from tests.conftest import (
 from walkers.agents.factory import build_agent
 from walkers.analysis.comparison import build_comparison
 from walkers.train import train
+from walkers.training.checkpoint_evaluation import evaluate
 from walkers.training.envs import env_spaces, make_env
-from walkers.training.policy_replay import evaluate
 
 stable_baselines3 = pytest.importorskip("stable_baselines3")
 

@@ -34,10 +34,10 @@ from walkers.data.replay import Batch
 from walkers.errors import ConfigError
 from walkers.train import train
 from walkers.training import checkpoints
+from walkers.training.checkpoint_evaluation import evaluate
 from walkers.training.checkpoints import agent_from_checkpoint
-from walkers.training.collection import collect
+from walkers.training.dataset_recording import collect
 from walkers.training.envs import make_env
-from walkers.training.policy_replay import evaluate
 from walkers.training.validate import validate
 
 SMALL = {"hidden_sizes": [16, 16], "batch_size": 32}

@@ -3,7 +3,7 @@
     python -m walkers.collect run_id=<id> episodes=100 dataset=walkers/walker2d/td3-expert
     python -m walkers.collect run_id=random env=pendulum episodes=50 dataset=walkers/pendulum/random
 
-The recording itself is :mod:`walkers.training.collection`.
+The recording itself is :mod:`walkers.training.dataset_recording`.
 """
 
 from __future__ import annotations
@@ -17,7 +17,9 @@ from walkers.cli import exit_on_bad_overrides, or_exit
 
 @hydra.main(config_path=str(CONF_DIR), config_name="collect")
 def main(cfg: DictConfig) -> None:
-    from walkers.training.collection import collect  # torch, MLflow: after the overrides' check
+    from walkers.training.dataset_recording import (
+        collect,  # torch, MLflow: after the overrides' check
+    )
 
     stats = or_exit(collect, cfg)
     print(

@@ -3,7 +3,7 @@
     python -m walkers.evaluate run_id=<id> checkpoint=best episodes=10 video=true out=<dir>
     python -m walkers.evaluate checkpoint=path/to/last.pt render=human
 
-The replay itself is :mod:`walkers.training.policy_replay`.
+The replay itself is :mod:`walkers.training.checkpoint_evaluation`.
 """
 
 from __future__ import annotations
@@ -17,7 +17,9 @@ from walkers.cli import exit_on_bad_overrides, or_exit
 
 @hydra.main(config_path=str(CONF_DIR), config_name="evaluate")
 def main(cfg: DictConfig) -> None:
-    from walkers.training.policy_replay import evaluate  # torch, MLflow: after the overrides' check
+    from walkers.training.checkpoint_evaluation import (
+        evaluate,  # torch, MLflow: after the overrides' check
+    )
 
     result = or_exit(evaluate, cfg)
     where = (

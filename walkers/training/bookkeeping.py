@@ -31,8 +31,8 @@ from walkers.seeding import (
     training_env_seed,
 )
 from walkers.training.evaluation import Evaluation, greedy_evaluation
+from walkers.training.greedy_episodes import record_episodes
 from walkers.training.provenance import DIVERGED_TAG
-from walkers.training.rollout import record_episodes
 from walkers.training.run import ENV_STEP_AXIS, Axis, TrainingRun
 from walkers.training.settings import RunSettings
 from walkers.training.video import write_gif

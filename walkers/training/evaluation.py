@@ -11,7 +11,7 @@ import numpy as np
 
 from walkers.agents.base import Agent
 from walkers.metrics import normalized_score
-from walkers.training.rollout import run_episodes
+from walkers.training.greedy_episodes import run_episodes
 
 #: (agent, eval env, start seeds) -> (returns of the headline evaluation, extra metrics)
 Evaluation = Callable[[Agent, gym.Env, list[int]], tuple[np.ndarray, dict[str, float]]]

@@ -25,7 +25,7 @@ from walkers.seeding import eval_start_seeds, held_out_start_seeds
 from walkers.training import checkpoints
 from walkers.training.checkpoints import agent_from_checkpoint
 from walkers.training.envs import make_env
-from walkers.training.rollout import record_episodes
+from walkers.training.greedy_episodes import record_episodes
 from walkers.training.run import RunFolder, TrainingRun
 from walkers.training.video import write_videos
 

@@ -32,9 +32,9 @@ from walkers.data.episodes import Episode
 from walkers.data.replay import first_steps, replay_episodes
 from walkers.errors import CheckpointError, ConfigError
 from walkers.training import checkpoints
+from walkers.training.checkpoint_evaluation import fetch_checkpoint
 from walkers.training.checkpoints import agent_from_checkpoint
 from walkers.training.envs import make_env
-from walkers.training.policy_replay import fetch_checkpoint
 from walkers.training.run import RunFolder
 
 log = logging.getLogger("walkers")

@@ -13,10 +13,13 @@ import numpy as np
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
+from hydra.utils import get_class
 from mlflow.tracking import MlflowClient
 
 from walkers import PROJECT_ROOT
 from walkers.agents.base import Transition
+from walkers.agents.declarations.hyperparameters import tiny_overrides
+from walkers.agents.declarations.schemas import SCHEMAS
 from walkers.data.datasets import OfflineData
 from walkers.data.episodes import Episode
 
@@ -41,8 +44,15 @@ TINY = [
 ]
 
 
+def tiny(algo: str) -> list[str]:
+    """The overrides that make a tiny run of ``algo`` learn: its declaration's ``TINY``."""
+    return tiny_overrides(SCHEMAS[algo])
+
+
+#: every algorithm that learns from env steps, from the declarations (algo=dt learns offline)
+ONLINE = [name for name, schema in SCHEMAS.items() if not get_class(schema.AGENT).offline]
 #: A PPO that updates within a tiny run: rollouts of 128 steps, 2 epochs of 4 minibatches.
-PPO_TINY = ["algo.n_steps=128", "algo.n_minibatches=4", "algo.n_epochs=2"]
+PPO_TINY = tiny("ppo")
 
 #: The metrics every online run logs (docs/training.md, the evaluation protocol).
 DESIGN_METRICS = {

@@ -20,40 +20,23 @@ import sys
 import numpy as np
 import torch
 
-from tests.conftest import PPO_TINY, compose_cfg
+from tests.conftest import ONLINE, compose_cfg, tiny
 from walkers.agents.base import Transition
 from walkers.agents.factory import build_agent
 from walkers.training.envs import env_spaces, make_env
 
 STEPS = 400
-SMALL_OFF_POLICY = ["algo.hidden_sizes=[32,32]", "algo.batch_size=32", "algo.learning_starts=100"]
-CASES = {
-    "td3": ["algo=td3", *SMALL_OFF_POLICY],
-    "td3_population2": ["algo=td3", "population=2", *SMALL_OFF_POLICY],
+#: every online algorithm at its declared tiny settings, and the variants that take other paths
+CASES = {name: [f"algo={name}", *tiny(name)] for name in ONLINE} | {
+    "td3_population2": ["algo=td3", "population=2", *tiny("td3")],
     "ddpg_ou_layernorm": [
         "algo=ddpg",
         "algo.noise_type=ou",
         "algo.critic_architecture=layernorm_branch",
         "algo.critic_hidden_sizes=[40,30]",
-        *SMALL_OFF_POLICY,
+        *tiny("ddpg"),
     ],
-    "sac": ["algo=sac", *SMALL_OFF_POLICY],
-    # the renormalization past its warm-up within the run's updates
-    "crossq": [
-        "algo=crossq",
-        "algo.critic_hidden_sizes=[32,32]",
-        "algo.renorm_warmup_steps=100",
-        *SMALL_OFF_POLICY,
-    ],
-    "crossq_population2": [
-        "algo=crossq",
-        "population=2",
-        "algo.critic_hidden_sizes=[32,32]",
-        "algo.renorm_warmup_steps=100",
-        *SMALL_OFF_POLICY,
-    ],
-    "ppo": ["algo=ppo", *PPO_TINY],
-    "reinforce": ["algo=reinforce", "algo.episodes_per_update=1"],
+    "crossq_population2": ["algo=crossq", "population=2", *tiny("crossq")],
 }
 
 

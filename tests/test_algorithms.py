@@ -6,28 +6,18 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from hydra.utils import get_class
 
-from tests.conftest import DESIGN_METRICS, PPO_TINY, TINY, all_runs, compose_cfg
+from tests.conftest import DESIGN_METRICS, ONLINE, TINY, all_runs, compose_cfg, tiny
 from tests.fingerprints import CASES
 from walkers.agents.base import Transition
 from walkers.agents.ddpg import DDPG
-from walkers.agents.declarations.schemas import SCHEMAS
 from walkers.agents.factory import defaults_for
 from walkers.agents.reinforce import Reinforce, returns_to_go
 from walkers.train import train
 from walkers.training.envs import make_env
 
-OFF_POLICY_TINY = ["algo.learning_starts=200", "algo.batch_size=64"]
-REINFORCE_TINY = ["algo.episodes_per_update=1"]
-#: tiny settings by algorithm; the replay-based ones take OFF_POLICY_TINY
-TINY_ALGO = {
-    "reinforce": REINFORCE_TINY,
-    "ppo": PPO_TINY,
-    "crossq": [*OFF_POLICY_TINY, "algo.critic_hidden_sizes=[64,64]"],
-}
-#: every algorithm that learns from env steps, from the declarations (algo=dt learns offline)
-ONLINE = [name for name, schema in SCHEMAS.items() if not get_class(schema.AGENT).offline]
+OFF_POLICY_TINY = tiny("ddpg")
+REINFORCE_TINY = tiny("reinforce")
 
 
 def test_the_online_algorithms_are_the_declared_ones():
@@ -38,8 +28,7 @@ def test_the_online_algorithms_are_the_declared_ones():
 @pytest.mark.parametrize("env", ["pendulum", "bipedal_walker", "walker2d"])
 @pytest.mark.parametrize("algo", ONLINE)
 def test_every_algo_completes_a_tiny_run(store, algo, env):
-    extra = TINY_ALGO.get(algo, OFF_POLICY_TINY)
-    train(compose_cfg([f"algo={algo}", f"env={env}", *TINY, *extra, *store["overrides"]]))
+    train(compose_cfg([f"algo={algo}", f"env={env}", *TINY, *tiny(algo), *store["overrides"]]))
     (run,) = all_runs(store["client"])
     assert run.info.status == "FINISHED"
     assert run.data.tags["algo"] == algo

@@ -95,6 +95,18 @@ class Hyperparameters:
     AT_MOST: ClassVar[dict[str, tuple[str, str]]] = {}
     #: a hyperparameter that must divide another: ``{key: (multiple key, why)}``
     DIVIDES: ClassVar[dict[str, tuple[str, str]]] = {}
+    #: values that make a run of a few hundred env steps learn (past any warm-up, several
+    #: updates) on small networks: what the tests' tiny runs and the seeded fingerprints use
+    TINY: ClassVar[dict[str, Any]] = {}
+
+
+def tiny_overrides(schema: type[Hyperparameters]) -> list[str]:
+    """``schema.TINY`` as command-line overrides: ``["algo.batch_size=32", ...]``."""
+    return [f"algo.{key}={_override(value)}" for key, value in schema.TINY.items()]
+
+
+def _override(value) -> str:
+    return "[" + ",".join(map(str, value)) + "]" if isinstance(value, list) else str(value)
 
 
 def declared(schema: type[Hyperparameters]) -> list[dataclasses.Field]:

@@ -59,6 +59,7 @@ class Replay(Hyperparameters):
     """What the replay-based actor-critics (TD3, DDPG, SAC, CrossQ) share."""
 
     AT_MOST = {"batch_size": ("buffer_size", "")}
+    TINY = {"hidden_sizes": [32, 32], "batch_size": 32, "learning_starts": 100}
 
     lr: float = hp(3.0e-4, POSITIVE, "Adam learning rate, actor and critics")
     batch_size: int = hp(256, POSITIVE_INT, "transitions per gradient step")
@@ -200,6 +201,8 @@ class CrossQHyperparameters(Replay):
 
     AGENT = "walkers.agents.crossq.CrossQ"
     NAME = "crossq"
+    #: the renormalization past its warm-up within a tiny run's updates
+    TINY = {**Replay.TINY, "critic_hidden_sizes": [32, 32], "renorm_warmup_steps": 100}
     lr: float = hp(1.0e-3, POSITIVE, "Adam learning rate: actor, critics and temperature")
     learning_starts: int = warmup(5_000, " (the paper's code: 5000)")
     hidden_sizes: list[int] = hp([256, 256], LAYERS, "hidden layers of the actor")
@@ -242,6 +245,7 @@ class PPOHyperparameters(Hyperparameters):
 
     AGENT = "walkers.agents.ppo.PPO"
     NAME = "ppo"
+    TINY = {"n_steps": 128, "n_minibatches": 4, "n_epochs": 2}  # updates every 128 steps
     AT_MOST = {"n_minibatches": ("n_steps", ": a minibatch holds at least one step")}
     DIVIDES = {"num_envs": ("n_steps", ": each env collects n_steps / num_envs of a rollout")}
     lr: float = hp(3.0e-4, POSITIVE, "Adam learning rate (policy and value share one optimizer)")
@@ -336,6 +340,7 @@ class ReinforceHyperparameters(Hyperparameters):
 
     AGENT = "walkers.agents.reinforce.Reinforce"
     NAME = "reinforce"
+    TINY = {"episodes_per_update": 1}
     lr: float = hp(1.0e-3, POSITIVE, "Adam learning rate of the policy")
     hidden_sizes: list[int] = hp(
         [64, 64], LAYERS, "hidden layers of the policy mean (and of the baseline)"
@@ -373,6 +378,7 @@ class DecisionTransformerHyperparameters(Hyperparameters):
 
     AGENT = "walkers.agents.dt.DecisionTransformer"
     NAME = "dt"
+    TINY = {"embed_dim": 32, "n_layers": 1, "context_length": 5, "batch_size": 8}
     RUN_SETTINGS = {
         "total_steps": (100_000, "gradient steps"),
         "eval_every": (
@@ -429,6 +435,7 @@ class TD3BCHyperparameters(TD3Ideas):
 
     AGENT = "walkers.agents.td3bc.TD3BC"
     NAME = "td3bc"
+    TINY = {"hidden_sizes": [32, 32], "batch_size": 16}
     RUN_SETTINGS = {
         "total_steps": (1_000_000, "gradient steps"),
         "eval_every": (5_000, "gradient steps between evaluations"),

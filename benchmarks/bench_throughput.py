@@ -47,7 +47,7 @@ from walkers.agents.reinforce import Reinforce
 from walkers.agents.sac import SAC
 from walkers.agents.td3 import TD3
 from walkers.data.replay import DATA_FIELDS, ReplayBuffer
-from walkers.training.envs import env_spaces, make_vector_env
+from walkers.training.envs import env_spaces, make_vector_env, step_vector_env
 
 ENV_ID, HIDDEN, BATCH, WARMUP = "Walker2d-v5", 256, 256, 1_000
 PPO_ROLLOUT = 2048  # PPO's reference rollout: a PPO round is one rollout and its update
@@ -216,25 +216,10 @@ class VectorPPOLoop:
         agent, envs, n = self.agent, self.envs, self.envs.num_envs
         for _ in range(steps // n):
             actions = agent.act(self.obs, explore=True)
-            next_obs, rewards, terminated, truncated, info = envs.step(actions)
-            own = next_obs.copy()
-            for i in np.flatnonzero(terminated | truncated):
-                own[i] = info["final_obs"][i]
-            agent.observe_batch(
-                [
-                    Transition(
-                        self.obs[i],
-                        actions[i],
-                        float(rewards[i]),
-                        own[i],
-                        bool(terminated[i]),
-                        bool(truncated[i]),
-                    )  # fmt: skip
-                    for i in range(n)
-                ]
-            )
+            step = step_vector_env(envs, self.obs, actions)
+            agent.observe_batch(step.transitions)
             agent.update()
-            self.obs = next_obs
+            self.obs = step.next_obs
 
 
 class SB3PPOLoop:

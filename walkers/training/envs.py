@@ -8,10 +8,12 @@ environment's own return. Evaluation envs get no shaping at all.
 from __future__ import annotations
 
 import logging
+from typing import NamedTuple
 
 import gymnasium as gym
 import numpy as np
 
+from walkers.agents.base import Transition
 from walkers.errors import ConfigError
 
 #: PyOpenGL (MuJoCo's renderer) says at INFO that an optional accelerator is not installed.
@@ -78,6 +80,37 @@ def make_vector_env(env_cfg, num_envs: int) -> gym.vector.SyncVectorEnv:
     return gym.vector.SyncVectorEnv(
         [lambda: make_env(env_cfg)] * num_envs, autoreset_mode=same_step
     )
+
+
+class VectorStep(NamedTuple):
+    """One step of every env of a vector env (:func:`step_vector_env`)."""
+
+    next_obs: np.ndarray  # what each env shows now: a finished episode's env already reset
+    transitions: list[Transition]  # each env's step, its own last observation where it ended
+    info: dict
+    ended: np.ndarray  # the envs whose episode ended in the step
+
+
+def step_vector_env(envs: gym.vector.VectorEnv, obs: np.ndarray, actions) -> VectorStep:
+    """Step every env of ``envs`` (finishing episodes in the step, :func:`make_vector_env`)
+    from observations ``obs`` with ``actions``."""
+    next_obs, rewards, terminated, truncated, info = envs.step(actions)
+    ended = np.flatnonzero(terminated | truncated)
+    own_next_obs = next_obs.copy()  # a finished episode's own last observation, not the next
+    for i in ended:  # episode's first
+        own_next_obs[i] = info["final_obs"][i]
+    transitions = [
+        Transition(
+            obs[i],
+            actions[i],
+            float(rewards[i]),
+            own_next_obs[i],
+            bool(terminated[i]),
+            bool(truncated[i]),
+        )  # fmt: skip
+        for i in range(envs.num_envs)
+    ]
+    return VectorStep(next_obs, transitions, info, ended)
 
 
 def env_spaces(env: gym.Env) -> dict:

@@ -37,6 +37,7 @@ from walkers.agents.common.actor_critic import ActorCritic
 from walkers.agents.sb3.twin import SB3Twin
 from walkers.interrupts import shielded, stop_noted
 from walkers.training.bookkeeping import RunBook
+from walkers.training.envs import step_vector_env
 
 
 def train_online(agent: Agent, env: gym.Env, book: RunBook) -> dict[str, float]:
@@ -84,26 +85,10 @@ def train_vectorized(
         while p.step < book.settings.total_steps:
             with shielded():
                 actions = agent.act(obs, explore=True)
-                next_obs, rewards, terminated, truncated, info = envs.step(actions)
-                ended = np.flatnonzero(terminated | truncated)
-                own_next_obs = next_obs.copy()  # a finished episode's own last observation,
-                for i in ended:  # not the next episode's first
-                    own_next_obs[i] = info["final_obs"][i]
-                agent.observe_batch(
-                    [
-                        Transition(
-                            obs[i],
-                            actions[i],
-                            float(rewards[i]),
-                            own_next_obs[i],
-                            bool(terminated[i]),
-                            bool(truncated[i]),
-                        )  # fmt: skip
-                        for i in range(n)
-                    ]
-                )
+                step = step_vector_env(envs, obs, actions)
+                agent.observe_batch(step.transitions)
                 losses.update(agent.update())
-                obs = next_obs
+                obs, info, ended = step.next_obs, step.info, step.ended
                 for i in range(n):
                     p.step += 1
                     if i in ended:

@@ -164,3 +164,21 @@ def test_a_bad_num_envs_through_the_cli_exits_2_and_creates_nothing(store):
         result
     )
     assert all_runs(store["client"]) == []
+
+
+def test_a_several_envs_config_has_its_own_update_fingerprint(monkeypatch, tmp_path):
+    """What an export records for a run of it (walkers.agents.fingerprint): driven through a
+    batch of envs, and not the single env's."""
+    from walkers.agents.fingerprint import update_fingerprint
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    several = update_fingerprint(compose_cfg([*VECTOR, "algo.num_envs=2"]).algo)
+    single = update_fingerprint(compose_cfg([*VECTOR, "algo.num_envs=1"]).algo)
+    assert len(several) > 10 and several != single
+
+
+def test_one_step_at_a_time_is_refused_with_several_envs():
+    agent = PPO(3, [-1.0], [1.0], seed=0, **defaults_for(PPO, n_steps=8, num_envs=2))
+    agent.act(np.zeros((2, 3), np.float32), explore=True)
+    with pytest.raises(ValueError, match="num_envs=2 observes a batch"):
+        agent.observe(Transition(np.zeros(3), np.zeros(1), 0.0, np.zeros(3), False, False))

@@ -111,6 +111,8 @@ def _compute(algo: dict) -> list[float]:
     agent = build_agent(cfg, {"obs_dim": _OBS_DIM, "action_low": [-2.0], "action_high": [2.0]})
     if agent.offline:
         raise NoFingerprint(f"{algo.get('name')} learns offline, from a dataset")
+    if agent.several_envs and agent.num_envs > 1:
+        return _several_envs(agent)
     rng = np.random.default_rng(0)
     obs = rng.normal(size=_OBS_DIM).astype(np.float32)
     numbers: list[float] = []
@@ -128,6 +130,35 @@ def _compute(algo: dict) -> list[float]:
             updates += 1
             numbers += [float(losses[k]) for k in sorted(losses)]
         obs = rng.normal(size=_OBS_DIM).astype(np.float32) if end else next_obs
+    numbers += [float(x) for probe in _PROBES for x in np.ravel(agent.act(probe, explore=False))]
+    return [float(f"{x:.6g}") for x in numbers]
+
+
+def _several_envs(agent) -> list[float]:
+    """:func:`_compute`'s synthetic task on ``agent.num_envs`` envs acting as one batch (each its
+    own stream of states, the episodes ending together)."""
+    from walkers.agents.base import Transition
+
+    n, rng = agent.num_envs, np.random.default_rng(0)
+    obs = rng.normal(size=(n, _OBS_DIM)).astype(np.float32)
+    numbers: list[float] = []
+    updates, steps = 0, 0
+    while updates < UPDATES and steps < 20_000 * n:
+        actions = np.asarray(agent.act(obs, explore=True), dtype=np.float32)
+        next_obs = (0.9 * obs + 0.1 * rng.normal(size=obs.shape)).astype(np.float32)
+        rewards = -(obs**2).sum(axis=1) - 0.1 * (actions**2).sum(axis=1)
+        steps += n
+        end = (steps // n) % _EPISODE == 0
+        agent.observe_batch(
+            [
+                Transition(obs[i], actions[i], float(rewards[i]), next_obs[i], False, end)
+                for i in range(n)
+            ]  # fmt: skip
+        )
+        if losses := agent.update():
+            updates += 1
+            numbers += [float(losses[k]) for k in sorted(losses)]
+        obs = rng.normal(size=obs.shape).astype(np.float32) if end else next_obs
     numbers += [float(x) for probe in _PROBES for x in np.ravel(agent.act(probe, explore=False))]
     return [float(f"{x:.6g}") for x in numbers]
 

@@ -177,6 +177,8 @@ class PPO(Agent):
         return np.clip(action, self.action_low, self.action_high)
 
     def observe(self, t: Transition) -> None:
+        if self.num_envs > 1:
+            raise ValueError(f"PPO with num_envs={self.num_envs} observes a batch (observe_batch)")
         obs, sample = self._last
         self.rollouts[0].add(
             t.episode_over,

@@ -178,7 +178,8 @@ def test_a_several_envs_config_has_its_own_update_fingerprint(monkeypatch, tmp_p
 
 
 def test_one_step_at_a_time_is_refused_with_several_envs():
-    agent = PPO(3, [-1.0], [1.0], seed=0, **defaults_for(PPO, n_steps=8, num_envs=2))
+    hp = defaults_for(PPO, n_steps=8, n_minibatches=2, num_envs=2)
+    agent = PPO(3, [-1.0], [1.0], seed=0, **hp)
     agent.act(np.zeros((2, 3), np.float32), explore=True)
     with pytest.raises(ValueError, match="num_envs=2 observes a batch"):
         agent.observe(Transition(np.zeros(3), np.zeros(1), 0.0, np.zeros(3), False, False))

@@ -115,11 +115,15 @@ def main(argv: list[str] | None = None) -> int:
     differ = [
         f"{name}.{part}"
         for name in CASES
+        if name in before  # a case the file does not have is new, not different
         for part in prints[name]
-        if before.get(name, {}).get(part) != prints[name][part]
+        if before[name].get(part) != prints[name][part]
     ]
     for name in CASES:
-        status = "identical" if not any(d.startswith(name + ".") for d in differ) else "DIFFERS"
+        if name not in before:
+            status = "new (not in the file)"
+        else:
+            status = "DIFFERS" if any(d.startswith(name + ".") for d in differ) else "identical"
         print(f"{name:<20} {status}")
     if differ:
         print("differ: " + ", ".join(differ))

@@ -13,10 +13,8 @@ from importlib import import_module
 #: ``walkers.tracking.names`` (or this face) imports no MLflow.
 _HOMES = {
     "walkers.tracking.client": (
-        "ABSENT",
         "QUICK_HTTP_RETRIES",
         "connect",
-        "differing_keys",
         "download_checkpoint",
         "flatten",
         "get_or_create_experiment",
@@ -29,6 +27,7 @@ _HOMES = {
         "ui_url",
     ),
     "walkers.tracking.names": (
+        "ABSENT",
         "END_REASON_TAG",
         "ENV_STEPS",
         "FAILED",
@@ -44,6 +43,7 @@ _HOMES = {
         "STUDY_KIND",
         "STUDY_TAG",
         "X_AXIS_TAG",
+        "differing_keys",
         "status_after",
     ),
     "walkers.tracking.tracker": (

@@ -13,7 +13,7 @@ import logging
 import os
 import time
 import urllib.request
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from pathlib import Path
 from urllib.parse import urlsplit, urlunsplit
 
@@ -206,17 +206,6 @@ def metric_history(client: MlflowClient, run_id: str, key: str) -> tuple[list[in
     """``(steps, values)`` of one metric, in step order."""
     history = sorted(client.get_metric_history(run_id, key), key=lambda m: m.step)
     return [m.step for m in history], [m.value for m in history]
-
-
-#: How a key a run does not have is shown (a key added to the config after the run).
-ABSENT = "(not set)"
-
-
-def differing_keys(configs: Sequence[Mapping[str, str]]) -> list[str]:
-    """Keys whose value is not the same in every (flattened) config, a missing key counting as
-    a value, sorted."""
-    keys = set().union(*configs) if configs else set()
-    return sorted(k for k in keys if len({c.get(k, ABSENT) for c in configs}) > 1)
 
 
 def flatten(d: Mapping, prefix: str = "") -> dict[str, str]:

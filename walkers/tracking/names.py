@@ -3,6 +3,8 @@ Plain constants: importing them imports nothing else (no MLflow)."""
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
+
 #: Statuses a run ends with.
 FINISHED, FAILED, KILLED = "FINISHED", "FAILED", "KILLED"
 
@@ -34,3 +36,14 @@ LOGGED_THROUGH_TAG = "walkers.logged_through"
 STUDY_KIND, STUDY_TAG = "ab", "walkers.ab"
 #: Tag: the run id in the store a run was first logged to (set on every copy a bundle imports).
 ORIGIN_TAG = "walkers.origin"
+
+
+#: How a key a run does not have is shown (a key added to the config after the run).
+ABSENT = "(not set)"
+
+
+def differing_keys(configs: Sequence[Mapping[str, str]]) -> list[str]:
+    """Keys whose value is not the same in every (flattened) config, a missing key counting as
+    a value, sorted."""
+    keys = set().union(*configs) if configs else set()
+    return sorted(k for k in keys if len({c.get(k, ABSENT) for c in configs}) > 1)

@@ -70,7 +70,7 @@ def images_load(base: str, page: str, html: str) -> list[str]:
     ("page", "expected", "images"),
     [
         ("", ["The algorithms", "CrossQ", "Set-up: two commands", "A worked A/B example"], 0),
-        ("algorithms/td3/", ["The update, beside the code", "lines 99-117", "policy_delay"], 0),
+        ("algorithms/td3/", ["The update, beside the code", "skip_nonfinite", "policy_delay"], 0),
         ("results/tiny/suite/", ["Aggregates (normalized)", "reinforce", "td3"], 2),
     ],
 )

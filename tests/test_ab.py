@@ -10,49 +10,12 @@ import pytest
 from omegaconf import OmegaConf
 
 from tests.conftest import all_runs, compose_cfg, one_line_error, run_cli
+from tests.study_kit import OBVIOUS, arms, job_runs, study, study_run
 from walkers import CONF_DIR
 from walkers.ab.spec import StudySpec
 from walkers.errors import ConfigError
 from walkers.tracking.bundles import read_bundle
 from walkers.training.validate import validate
-
-
-#: Two arms that cannot be confused: the same untrained REINFORCE, one with episodes half as
-#: long on Pendulum (about half the negative return).
-def arms(mapping: str) -> list[str]:
-    """Command-line overrides that replace the study file's arms (a user edits the file)."""
-    return ["~hydra.sweeper.arms", f"+hydra.sweeper.arms={mapping}"]
-
-
-OBVIOUS = arms("{short:'algo=reinforce env.max_episode_steps=100',long:'algo=reinforce'}")
-TINY_JOBS = [
-    "total_steps=400",
-    "eval_every=200",
-    "eval_episodes=2",
-    "checkpoint_every=200",
-    "hydra.sweeper.envs=[pendulum]",
-    "hydra.sweeper.seeds={min:5,max:7,per_round:1}",
-]
-
-
-def study(store, *overrides: str, name: str = "t") -> list[str]:
-    return [
-        "-m",
-        "ab=tiny",
-        f"hydra.sweeper.name={name}",
-        *TINY_JOBS,
-        *overrides,
-        *store["overrides"],
-    ]
-
-
-def job_runs(store) -> list:
-    return [r for r in all_runs(store["client"]) if "walkers.job_key" in r.data.tags]
-
-
-def study_run(store):
-    (run,) = [r for r in all_runs(store["client"]) if r.data.tags.get("walkers.kind") == "ab"]
-    return run
 
 
 def test_an_obvious_difference_stops_at_the_minimum_seeds_and_a_rerun_runs_nothing(store):

@@ -12,7 +12,7 @@ import time
 import pytest
 
 from tests.conftest import all_runs, run_cli, spawn_cli
-from tests.test_ab import OBVIOUS, job_runs, study, study_run
+from tests.study_kit import OBVIOUS, export, ingest, job_runs, study, study_run
 from walkers.tracking import LOGGED_THROUGH_TAG
 
 pytestmark = pytest.mark.faults  # `make test-faults`, beside `make test` in CI
@@ -114,7 +114,6 @@ def test_a_study_killed_on_one_machine_finishes_on_another_from_its_bundle(store
     finishes it: no finished seed runs again, and the job cut mid-run continues its own
     (imported) run from its checkpoint."""
     from tests.conftest import new_store
-    from tests.test_bundles import export, ingest
 
     args = ["total_steps=10000", "checkpoint_every=1000", "eval_every=1000", "progress=false"]
     proc = spawn_cli(study(store, *OBVIOUS, *args), cwd=store["path"], new_session=True)

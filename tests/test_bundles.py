@@ -11,26 +11,10 @@ import pytest
 from mlflow.tracking import MlflowClient
 
 from tests.conftest import all_runs, compose_cfg, new_store, one_line_error, run_cli
-from tests.test_ab import OBVIOUS, arms, study
+from tests.study_kit import OBVIOUS, arms, export, ingest, study
 from walkers.errors import ConfigError
 from walkers.export import export as export_runs
 from walkers.tracking import bundles
-
-
-def export(store, *args: str):
-    return run_cli(
-        ["tracking.experiment=ab_tiny", *args, f"tracking.uri={store['uri']}"],
-        cwd=store["path"],
-        module="walkers.export",
-    )
-
-
-def ingest(store, bundle, *args: str):
-    return run_cli(
-        [f"bundle={bundle}", *args, f"tracking.uri={store['uri']}"],
-        cwd=store["path"],
-        module="walkers.ingest",
-    )
 
 
 def report(store) -> str:

@@ -15,9 +15,9 @@ import urllib.request
 
 import pytest
 
+from tests.browser_kit import dom
 from tests.cluster_kit import free_port
 from tests.conftest import PROJECT_ROOT
-from tests.test_ui_view import dom
 
 pytestmark = pytest.mark.browser
 

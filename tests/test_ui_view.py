@@ -4,11 +4,10 @@ Chromium (`make ui-check`; MLflow 3.17 opens an experiment as a GenAI applicatio
 from __future__ import annotations
 
 import re
-import shutil
-import subprocess
 
 import pytest
 
+from tests.browser_kit import dom
 from tests.cluster_kit import free_port
 from tests.conftest import run_cli
 from walkers.tracking.servers import start_mlflow_server
@@ -18,17 +17,6 @@ pytestmark = pytest.mark.browser
 #: What each view's sidebar and breadcrumb show (MLflow 3.17.2).
 TRAINING_VIEW = ("Model registry",)
 GENAI_VIEW = ("Evaluation runs", "Judges")
-
-
-def dom(url: str) -> str:
-    chromium = shutil.which("chromium") or shutil.which("chromium-browser")
-    assert chromium, "headless Chromium is needed: apt-get install chromium (make ui-check does)"
-    page = subprocess.run(
-        [chromium, "--headless", "--no-sandbox", "--disable-gpu", "--virtual-time-budget=20000",
-         "--dump-dom", url],
-        capture_output=True, text=True, timeout=120,
-    )  # fmt: skip
-    return page.stdout
 
 
 def test_the_printed_links_open_the_training_view(store):

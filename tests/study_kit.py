@@ -1,0 +1,60 @@
+"""What the study and bundle tests share: a tiny study's command line, its runs, and the export
+and import commands run as a user runs them."""
+
+from __future__ import annotations
+
+from tests.conftest import all_runs, run_cli
+
+
+#: Two arms that cannot be confused: the same untrained REINFORCE, one with episodes half as
+#: long on Pendulum (about half the negative return).
+def arms(mapping: str) -> list[str]:
+    """Command-line overrides that replace the study file's arms (a user edits the file)."""
+    return ["~hydra.sweeper.arms", f"+hydra.sweeper.arms={mapping}"]
+
+
+OBVIOUS = arms("{short:'algo=reinforce env.max_episode_steps=100',long:'algo=reinforce'}")
+TINY_JOBS = [
+    "total_steps=400",
+    "eval_every=200",
+    "eval_episodes=2",
+    "checkpoint_every=200",
+    "hydra.sweeper.envs=[pendulum]",
+    "hydra.sweeper.seeds={min:5,max:7,per_round:1}",
+]
+
+
+def study(store, *overrides: str, name: str = "t") -> list[str]:
+    return [
+        "-m",
+        "ab=tiny",
+        f"hydra.sweeper.name={name}",
+        *TINY_JOBS,
+        *overrides,
+        *store["overrides"],
+    ]
+
+
+def job_runs(store) -> list:
+    return [r for r in all_runs(store["client"]) if "walkers.job_key" in r.data.tags]
+
+
+def study_run(store):
+    (run,) = [r for r in all_runs(store["client"]) if r.data.tags.get("walkers.kind") == "ab"]
+    return run
+
+
+def export(store, *args: str):
+    return run_cli(
+        ["tracking.experiment=ab_tiny", *args, f"tracking.uri={store['uri']}"],
+        cwd=store["path"],
+        module="walkers.export",
+    )
+
+
+def ingest(store, bundle, *args: str):
+    return run_cli(
+        [f"bundle={bundle}", *args, f"tracking.uri={store['uri']}"],
+        cwd=store["path"],
+        module="walkers.ingest",
+    )

@@ -56,16 +56,20 @@ def train_until(args, num_envs: int, seed: int, uri: str) -> tuple[float, int] |
     ]  # fmt: skip
     client = MlflowClient(uri)
     process = subprocess.Popen(command, cwd=PROJECT, stdout=subprocess.DEVNULL)
-    while process.poll() is None:
-        time.sleep(5)
-        experiment = client.get_experiment_by_name(EXPERIMENT)
-        if experiment is None:
-            continue
-        runs = client.search_runs(
-            [experiment.experiment_id], f"tags.`walkers.job_key` = '{key}'", max_results=1
-        )
-        if runs and first_at(client, runs[0], args.threshold) is not None:
-            process.send_signal(signal.SIGINT)  # walks: stop it (KILLED, checkpointed)
+    try:
+        while process.poll() is None:
+            time.sleep(5)
+            experiment = client.get_experiment_by_name(EXPERIMENT)
+            if experiment is None:
+                continue
+            runs = client.search_runs(
+                [experiment.experiment_id], f"tags.`walkers.job_key` = '{key}'", max_results=1
+            )
+            if runs and first_at(client, runs[0], args.threshold) is not None:
+                break  # it walks
+    finally:  # it walks, or the benchmark itself stops: the run ends KILLED, checkpointed
+        if process.poll() is None:
+            process.send_signal(signal.SIGINT)
             process.wait(timeout=120)
     experiment = client.get_experiment_by_name(EXPERIMENT)
     runs = experiment and client.search_runs(

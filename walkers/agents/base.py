@@ -93,7 +93,7 @@ class Agent(Policy):
     """A policy that learns: every algorithm. Subclasses keep their networks and optimizers as
     attributes."""
 
-    def observe(self, transition: Transition) -> None:  # noqa: B027 (offline: never called)
+    def observe(self, transition: Transition) -> None:
         """Record one environment step (an online agent; an offline one learns from its dataset
         and is never shown one)."""
         raise NotImplementedError(f"{type(self).__name__} learns offline: it observes nothing")

@@ -86,6 +86,7 @@ class SoftActorCritic(ActorCritic):
 
     @staticmethod
     def entropy_metrics(alpha_loss, alpha, log_pi) -> dict[str, torch.Tensor]:
+        """The temperature step's metrics: its loss, alpha after it, the samples' entropy."""
         return {
             "loss/alpha": alpha_loss.detach(),
             "train/alpha": alpha,

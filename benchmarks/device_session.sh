@@ -1,0 +1,39 @@
+#!/usr/bin/env bash
+# The one command of a lent GPU call, about 6 minutes in all (each part under its own timeout):
+#
+#   here:   bash benchmarks/device_wheels.sh          # once: the wheels the machine lacks, in .whl/
+#   device: run(command="bash benchmarks/device_session.sh", carry=[".whl"], timeout_s=480)
+#
+# Parts (all by default, or name some: `bash benchmarks/device_session.sh update tests`): update
+# (the TD3 update vs a plain one, and by phase), throughput (TD3/SAC/PPO, populations 1/5/16), dt,
+# envs (env stepping on the machine's cores), tests (make test-gpu). Each part's log goes to $OUT
+# (what comes back), a line per part to $OUT/summary.txt, and the logs' ends are printed last.
+set -uo pipefail
+export PYTHONUNBUFFERED=1 MUJOCO_GL=egl PYTHONPATH=$PWD
+OUT=${OUT:-/tmp/device_session}
+mkdir -p "$OUT"
+parts=${*:-update throughput dt envs tests}
+
+bash benchmarks/device_venv.sh > "$OUT/setup.log" 2>&1 || { tail -20 "$OUT/setup.log"; exit 1; }
+tail -1 "$OUT/setup.log"
+
+part() {  # part NAME SECONDS COMMAND...
+  local name=$1 limit=$2 start=$SECONDS rc
+  shift 2
+  [[ " $parts " == *" $name "* ]] || return 0
+  timeout "$limit" "$@" > "$OUT/$name.log" 2>&1
+  rc=$?
+  echo "$name: exit $rc after $((SECONDS - start)) s (limit $limit)" | tee -a "$OUT/summary.txt"
+}
+py=.venv/bin/python
+part update 75 $py benchmarks/bench_update.py --device cuda --reps 3 --phases
+part throughput 120 $py benchmarks/bench_throughput.py --device cuda --only "TD3,SAC,PPO" \
+  --population 1,5,16 --reps 2 --steps 200
+part dt 25 $py benchmarks/bench_dt.py --devices cuda --reps 2 --steps 10
+part envs 40 $py benchmarks/bench_envs.py --envs 1,4,8,16 --steps 2000 --reps 2
+part tests 120 make test-gpu ARGS="-n 8 -p no:cacheprovider"
+
+for name in $parts; do
+  [[ -f "$OUT/$name.log" ]] && { echo "=== $name"; tail -c 2200 "$OUT/$name.log"; }
+done
+cat "$OUT/summary.txt"

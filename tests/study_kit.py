@@ -14,6 +14,9 @@ def arms(mapping: str) -> list[str]:
 
 
 OBVIOUS = arms("{short:'algo=reinforce env.max_episode_steps=100',long:'algo=reinforce'}")
+#: The same difference between two TD3 arms (TD3 trains seed populations), learning in 400 steps.
+_TD3 = "algo=td3 algo.learning_starts=100 algo.batch_size=32 algo.hidden_sizes=[32,32]"
+OBVIOUS_TD3 = arms(f"{{short:'{_TD3} env.max_episode_steps=100',long:'{_TD3}'}}")
 TINY_JOBS = [
     "total_steps=400",
     "eval_every=200",

@@ -10,7 +10,7 @@ import pytest
 from omegaconf import OmegaConf
 
 from tests.conftest import all_runs, compose_cfg, one_line_error, run_cli
-from tests.study_kit import OBVIOUS, arms, job_runs, study, study_run
+from tests.study_kit import OBVIOUS, OBVIOUS_TD3, arms, job_runs, study, study_run
 from walkers import CONF_DIR
 from walkers.ab.spec import StudySpec
 from walkers.errors import ConfigError
@@ -64,6 +64,42 @@ def test_an_obvious_difference_stops_at_the_minimum_seeds_and_a_rerun_runs_nothi
     line = one_line_error(run_cli(study(store, *edited), cwd=store["path"]))
     assert "arm 'long' on pendulum has changed since its runs started (algo.lr" in line
     assert len(job_runs(store)) == 10
+
+
+def test_a_rounds_new_seeds_train_as_one_population_each_its_own_job(store):
+    """seeds_as_population (the default on a GPU, forced here on the CPU): each arm's five fresh
+    seeds are one population job, and each member is the run its seed's job would be."""
+    args = study(store, *OBVIOUS_TD3, "hydra.sweeper.seeds_as_population=true")
+    result = run_cli(args, cwd=store["path"])
+    assert result.returncode == 0, result.stderr[-3000:]
+    said = result.stdout + result.stderr
+    assert "launching 2 jobs (10 seeds)" in said
+    assert "each round's new seeds run as one population job for long on pendulum" in said
+    runs = job_runs(store)
+    keys = sorted(r.data.tags["walkers.job_key"] for r in runs)
+    assert keys == sorted(f"ab/t/{arm}/pendulum/{s}" for arm in ("long", "short") for s in range(5))
+    for run in runs:
+        key, seed = run.data.tags["walkers.job_key"], run.data.params["seed"]
+        assert run.info.status == "FINISHED" and key.endswith(f"/{seed}")
+        assert run.data.tags["walkers.population"] == "5" and run.data.params["population"] == "1"
+        assert run.data.tags["mlflow.runName"] == f"ab-t-{key.split('/')[2]}-pendulum-s{seed}"
+    assert "short is better than long on pendulum (5 seeds per arm" in result.stdout
+
+    again = run_cli(args, cwd=store["path"])
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert len(job_runs(store)) == 10 and "launching" not in again.stdout + again.stderr
+
+
+def test_seeds_as_population_is_checked_in_one_line(store):
+    line = one_line_error(
+        run_cli(study(store, "hydra.sweeper.seeds_as_population=yes"), cwd=store["path"])
+    )
+    assert (
+        "hydra.sweeper.seeds_as_population='yes' is not allowed: one of auto, true, false" in line
+    )
+    line = one_line_error(run_cli(study(store, "population=3"), cwd=store["path"]))
+    assert "population=3: the study sets population for each job" in line
+    assert job_runs(store) == []
 
 
 def test_two_identical_arms_end_equal_or_not_settled_never_better(store):

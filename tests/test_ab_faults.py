@@ -12,7 +12,7 @@ import time
 import pytest
 
 from tests.conftest import all_runs, run_cli, spawn_cli
-from tests.study_kit import OBVIOUS, export, ingest, job_runs, study, study_run
+from tests.study_kit import OBVIOUS, OBVIOUS_TD3, export, ingest, job_runs, study, study_run
 from walkers.tracking import LOGGED_THROUGH_TAG
 
 pytestmark = pytest.mark.faults  # `make test-faults`, beside `make test` in CI
@@ -82,6 +82,49 @@ def test_a_rerun_after_kill_9_of_the_driver_finishes_every_seed_once(store, laun
     assert sorted(int(k.rsplit("/", 1)[1]) for k in finished if "/short/" in k) == [0, 1, 2, 3, 4]
     superseded = any("walkers.superseded" in r.data.tags for r in runs)
     assert "continuing it from its last checkpoint" in result.stdout + result.stderr or superseded
+    assert study_run(store).info.status == "FINISHED"
+
+
+def test_a_population_job_killed_mid_round_reruns_to_every_seed_once(store):
+    """A round's seeds as one population job (as on a GPU), the driver killed -9 while its
+    members train: the rerun continues each member from its last checkpoint as its seed's own
+    job, and the study ends with every seed FINISHED once."""
+    args = study(
+        store,
+        *OBVIOUS_TD3,
+        "hydra.sweeper.seeds_as_population=true",
+        "total_steps=4000",
+        "checkpoint_every=500",
+        "eval_every=500",
+        "progress=false",
+    )
+    proc = spawn_cli(args, cwd=store["path"], new_session=True)
+
+    def checkpointed_members() -> int:  # members past their second checkpoint, far from done
+        marks = [r.data.tags.get(LOGGED_THROUGH_TAG) for r in job_runs(store)]
+        return sum(mark is not None and 1000 <= int(mark) < 3000 for mark in marks)
+
+    try:
+        deadline = time.monotonic() + 240
+        while checkpointed_members() < 5:
+            assert proc.poll() is None, proc.communicate()[0][-3000:]
+            assert time.monotonic() < deadline
+            time.sleep(0.2)
+        os.killpg(proc.pid, signal.SIGKILL)
+    finally:
+        proc.kill()
+        proc.communicate()
+    killed = {r.data.tags["walkers.job_key"] for r in job_runs(store) if r.info.status == "RUNNING"}
+    assert len(killed) == 5, killed  # the population's five members, each under its own key
+
+    result = run_cli(args, cwd=store["path"])
+    assert result.returncode == 0, result.stderr[-3000:]
+    said = result.stdout + result.stderr
+    runs = job_runs(store)
+    finished = [r.data.tags["walkers.job_key"] for r in runs if r.info.status == "FINISHED"]
+    assert len(finished) == len(set(finished)) == 10, finished  # every seed once, none twice
+    assert killed <= set(finished)
+    assert said.count("continuing it from its last checkpoint") == 5
     assert study_run(store).info.status == "FINISHED"
 
 

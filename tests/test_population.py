@@ -15,6 +15,7 @@ from tests.conftest import (
     feed_members,
     run_cli,
     signal_once_checkpointed,
+    tiny,
 )
 from walkers.agents.factory import defaults_for
 from walkers.agents.td3 import TD3
@@ -68,8 +69,7 @@ def test_members_cut_out_and_loaded_back_continue_as_the_same_population():
     rebuilt = TD3(3, [-2.0], [2.0], population=3, seed=7, **SMALL)  # other seeds, fresh Adam
     for i in range(3):
         rebuilt.load_member_state_dict(i, original.member_state_dict(i, with_buffer=True))
-    for agent in (original, rebuilt):  # the same global RNG for the target-smoothing noise
-        torch.manual_seed(1)
+    for agent in (original, rebuilt):  # the smoothing noise's streams came with the members
         feed_members(agent, steps=30, rewards=[0.5, 1.0, -1.0])
     for name in ("actor", "critic", "actor_target", "critic_target"):
         rebuilt_state = getattr(rebuilt, name).state_dict()
@@ -132,6 +132,36 @@ def test_population_run_logs_each_member_as_its_own_run(store):
     assert client.get_run(member).info.status == "FINISHED"
     steps = [m.step for m in client.get_metric_history(member, "eval/return_mean")]
     assert steps == [300, 600, 700]
+
+
+@pytest.mark.parametrize("algo", ["td3", "crossq"])
+def test_a_member_trains_as_a_single_run_of_its_seed(store, algo):
+    """Member 1 of the population of seeds (5, 6) is the run of seed 6 alone: the same initial
+    weights, env starts, exploration, replay batches and update noise, so the same experiment
+    to float rounding (batched matmuls of 4 members and of 2 round differently)."""
+    common = [f"algo={algo}", "env=pendulum", *TINY, *tiny(algo), *store["overrides"]]
+    train(compose_cfg([*common, "population=2", "seed=5"]))
+    train(compose_cfg([*common, "seed=6"]))
+    client = store["client"]
+    runs = [r for r in all_runs(client) if r.data.params["seed"] == "6"]
+    (member,) = [r for r in runs if "walkers.population_member" in r.data.tags]
+    (single,) = [r for r in runs if "walkers.population_member" not in r.data.tags]
+
+    def history(run, metric):
+        return [(m.step, m.value) for m in client.get_metric_history(run.info.run_id, metric)]
+
+    for metric in ("train/episode_return", "eval/return_mean"):
+        got, alone = history(member, metric), history(single, metric)
+        assert [step for step, _ in got] == [step for step, _ in alone] and got
+        np.testing.assert_allclose([v for _, v in got], [v for _, v in alone], rtol=1e-4)
+    weights = []
+    for run in (member, single):
+        path = client.download_artifacts(
+            run.info.run_id, "checkpoints/last.pt", str(store["path"] / run.info.run_id)
+        )
+        weights.append(checkpoints.load(path)["agent"]["actor"])
+    for key, value in weights[0].items():
+        torch.testing.assert_close(value, weights[1][key], rtol=1e-4, atol=1e-5)
 
 
 def test_a_population_resumes_together(store):

@@ -134,8 +134,7 @@ def test_a_checkpoint_continues_the_same_experiment(cls):
     assert ("critic_target" in state) == (cls is SAC)  # CrossQ has no target networks
     restored = cls(OBS, [-2.0], [2.0], seed=9, **small(cls))  # another seed, fresh optimizers
     restored.load_state_dict(state)
-    for agent in (original, restored):  # the update's samples come from torch's global RNG,
-        torch.manual_seed(1)  # which a run's checkpoint holds (the trainer's torch_rng)
+    for agent in (original, restored):  # the update's noise streams came with the state
         feed_members(agent, steps=30, terminate_every=37)
     for key, value in parameters(original).items():
         assert torch.equal(value, parameters(restored)[key]), key
@@ -163,8 +162,7 @@ def test_population_members_cut_out_and_loaded_back(cls):
     rebuilt = cls(OBS, [-2.0], [2.0], population=3, seed=7, **small(cls))
     for i in range(3):
         rebuilt.load_member_state_dict(i, population.member_state_dict(i, with_buffer=True))
-    for agent in (population, rebuilt):
-        torch.manual_seed(1)
+    for agent in (population, rebuilt):  # the members' noise streams came with their states
         feed_members(agent, steps=30, terminate_every=37)
     for key, value in parameters(population).items():
         assert torch.equal(value, parameters(rebuilt)[key]), key

@@ -149,9 +149,8 @@ def test_terminated_target_is_the_reward_truncated_bootstraps():
     agent.observe(Transition(*same, terminated=True, truncated=False))
     agent.observe(Transition(*same, terminated=False, truncated=True))
     buf = agent.buffer
-    assert buf.terminated[:2].tolist() == [1.0, 0.0]
-    rows = slice(0, 2)
-    b = Batch(*(getattr(buf, f)[rows][None] for f in Batch._fields[:5]))
+    assert buf.terminated[0, :2].tolist() == [1.0, 0.0]
+    b = Batch(*(getattr(buf, f)[:, :2] for f in Batch._fields[:5]))
     assert b.reward.shape == (1, 2) and b.obs.shape == (1, 2, 1)
 
     y = targets(agent, b, zeros_noise(b))

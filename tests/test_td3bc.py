@@ -118,7 +118,7 @@ def test_states_are_normalized_with_the_datasets_mean_and_std_in_the_buffer_and_
     np.testing.assert_allclose(agent.obs_std, states.std(axis=0) + 1e-3, rtol=1e-6)
     n = data.steps
     assert len(agent.buffer) == n == agent.buffer.capacity
-    buffer = {k: getattr(agent.buffer, k)[:n].numpy() for k in ("obs", "next_obs", "terminated")}
+    buffer = {k: getattr(agent.buffer, k)[0, :n].numpy() for k in ("obs", "next_obs", "terminated")}
     normalized = (states - agent.obs_mean) / agent.obs_std
     np.testing.assert_allclose(buffer["obs"], normalized, rtol=1e-5, atol=1e-6)
     next_states = np.concatenate([e.observations[1:] for e in data.episodes])
@@ -127,7 +127,7 @@ def test_states_are_normalized_with_the_datasets_mean_and_std_in_the_buffer_and_
     )
     assert buffer["terminated"].sum() == 1 and buffer["terminated"][49] == 1  # not truncations
     np.testing.assert_array_equal(
-        agent.buffer.action[:n].numpy(), np.concatenate([e.actions for e in data.episodes])
+        agent.buffer.action[0, :n].numpy(), np.concatenate([e.actions for e in data.episodes])
     )
     s = data.episodes[1].observations[7]
     with torch.no_grad():
@@ -136,7 +136,7 @@ def test_states_are_normalized_with_the_datasets_mean_and_std_in_the_buffer_and_
     np.testing.assert_array_equal(agent.act(s, explore=True), agent.act(s, explore=False))
 
     raw = _agent(data, normalize_states=False)
-    np.testing.assert_array_equal(raw.buffer.obs[:n].numpy(), states)
+    np.testing.assert_array_equal(raw.buffer.obs[0, :n].numpy(), states)
 
 
 def test_a_checkpoint_acts_without_the_dataset_and_resumes_with_it():

@@ -32,6 +32,7 @@ STREAMS = {
     "replay": 3,  # replay buffer / dataset batch sampling, PPO's minibatch shuffling
     "policy": 4,  # stochastic policies' action sampling (REINFORCE, PPO); SB3's one seed
     "held_out_eval": 5,  # walkers.evaluate's default start states: never seen by the run
+    "update_noise": 6,  # the off-policy updates' noise (TD3's target smoothing, SAC's actions)
 }
 
 

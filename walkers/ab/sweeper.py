@@ -10,6 +10,15 @@ joblib, Ray, submitit). A job is keyed by study, arm, env and seed (``job_key``)
   checkpoint (:meth:`walkers.training.run.TrainingRun.continue_earlier_attempt`);
 - no seed runs twice or counts twice: one FINISHED run per key.
 
+On a GPU (``hydra.sweeper.seeds_as_population``: ``auto``, the default, where the jobs' device
+is CUDA; ``true``; ``false``) a round's fresh seeds of an (arm, env) run as one population job
+(``population=K``, for the algorithms that train populations): one process, one batched update
+for all of them. Each member is still its own MLflow run under its own seed's job key (the job's
+key holds ``{seed}``, which each member fills in), so reruns, resumes and the sequential rule
+see the same runs a job per seed would make; and a member trains as the single run of its seed
+(:mod:`walkers.random_streams`). Seeds that ran before (a killed or failed attempt) are
+continued one job each.
+
 Bad input (an unknown arm config or env, a maximum below the minimum, alpha out of range, an arm
 whose config changed since its runs started, a design other than the one the study started with)
 is one ``error:`` line and exit 2 before anything runs.
@@ -38,13 +47,17 @@ from walkers.analysis.sequential import A_BETTER, B_BETTER, EQUAL, Design, equal
 from walkers.cli import one_line_hydra_error
 from walkers.errors import ConfigError
 from walkers.training.provenance import shareable
+from walkers.training.run import SEED_IN_KEY
 from walkers.training.validate import validate
 from walkers.tuning.study_runs import end_jobs_runs
 
 log = logging.getLogger("walkers")
 
 #: Command-line keys a study sets for each job itself.
-STUDY_KEYS = ("seed", "env", "job_key", "trial.parent_run_id")
+STUDY_KEYS = ("seed", "env", "job_key", "trial.parent_run_id", "population")
+
+#: hydra.sweeper.seeds_as_population's values
+SEEDS_AS_POPULATION = ("auto", "true", "false")
 
 
 class JobsFailed(RuntimeError):
@@ -55,6 +68,7 @@ class StudySweeper(Sweeper):
     """Hydra registers it as :class:`walkers.plugins.ABStudySweeper`, which builds it."""
 
     def __init__(self, **declared: Any) -> None:
+        self.seeds_as_population = str(declared.pop("seeds_as_population", "auto")).lower()
         self.declared = declared
 
     def setup(self, *, hydra_context, task_function, config: DictConfig) -> None:
@@ -79,6 +93,7 @@ class StudySweeper(Sweeper):
             client = tracking.connect(self.config.tracking.uri)
             experiment = self.config.tracking.experiment
             ledger.check_arms_unchanged(ledger.job_runs(client, experiment, spec), spec, configs)
+            self.populations = self._population_places(base, spec, configs)
             study = ledger.open_study_run(client, experiment, spec, self.config.work_dir)
         except ConfigError as e:
             print(f"error: {e}", file=sys.stderr)
@@ -134,44 +149,66 @@ class StudySweeper(Sweeper):
             # round ends with its last job, and a long one started last would run alone
             logged = ledger.steps_logged(runs)
             jobs.sort(key=lambda job: logged.get(spec.job_key(*job), 0))
+            started = {run.data.tags.get(tracking.JOB_KEY_TAG) for run in runs}
+            launches = self._launches(spec, jobs, started)
             log.info(
-                "study %r, look %d: %d of %d questions open; launching %d jobs",
+                "study %r, look %d: %d of %d questions open; launching %d jobs%s",
                 spec.name,
                 now.look + 2,
                 sum(not q.answer.settled for q in now.questions),
                 len(now.questions),
-                len(jobs),
+                len(launches),
+                f" ({len(jobs)} seeds)" if len(launches) < len(jobs) else "",
             )
-            self._launch(client, experiment, spec, base, jobs, study.run_id)
+            self._launch(client, experiment, spec, base, launches, study.run_id)
 
-    def _launch(self, client, experiment, spec, base, jobs, parent_run_id: str) -> None:
-        keys = [spec.job_key(arm, env, seed) for arm, env, seed in jobs]
+    def _launches(self, spec, jobs, started: set) -> list[tuple[str, str, list[int]]]:
+        """The round's jobs as launches ``(arm, env, seeds)``: where an (arm, env) runs its seeds
+        as a population, each run of its consecutive fresh seeds (no run yet) is one launch;
+        every other seed is a launch of its own."""
+        launches: list[tuple[str, str, list[int]]] = []
+        for arm, env, seed in jobs:
+            fresh = spec.job_key(arm, env, seed) not in started
+            last = launches[-1] if launches else None
+            if (
+                fresh
+                and (arm, env) in self.populations
+                and last is not None
+                and last[:2] == (arm, env)
+                and last[2][-1] == seed - 1
+                and spec.job_key(arm, env, last[2][0]) not in started
+            ):
+                last[2].append(seed)
+            else:
+                launches.append((arm, env, [seed]))
+        return launches
+
+    def _launch(self, client, experiment, spec, base, launches, parent_run_id: str) -> None:
+        keys = [[spec.job_key(arm, env, seed) for seed in seeds] for arm, env, seeds in launches]
         batch = [
-            base
-            + list(spec.arm(arm).overrides)
-            + [
-                f"env={env}",
-                f"seed={seed}",
-                f"job_key={key}",
-                f"trial.parent_run_id={parent_run_id}",
-                f"tracking.run_name=ab-{spec.name}-{arm}-{env}-s{seed}",
-            ]
-            for (arm, env, seed), key in zip(jobs, keys, strict=True)
+            base + list(spec.arm(arm).overrides) + self._job_overrides(spec, arm, env, seeds)
+            for arm, env, seeds in launches
         ]
+        every_key = [key for group in keys for key in group]
         try:
-            returns = self.launcher.launch(batch, initial_job_idx=self.job_idx)
+            returns = self.launcher.launch(
+                [[*job, f"trial.parent_run_id={parent_run_id}"] for job in batch],
+                initial_job_idx=self.job_idx,
+            )
         except SystemExit as e:  # a job in this process (basic launcher) exits: 130 interrupted
             interrupted = e.code == 130
-            end_jobs_runs(client, experiment, keys, KeyboardInterrupt() if interrupted else e)
+            end_jobs_runs(client, experiment, every_key, KeyboardInterrupt() if interrupted else e)
             if interrupted:
                 raise KeyboardInterrupt from e
             raise
         except BaseException as e:
-            end_jobs_runs(client, experiment, keys, e)
+            end_jobs_runs(client, experiment, every_key, e)
             raise
         self.job_idx += len(returns)
         failed = [
-            (k, r) for k, r in zip(keys, returns, strict=True) if r.status == JobStatus.FAILED
+            (group[0], r)
+            for group, r in zip(keys, returns, strict=True)
+            if r.status == JobStatus.FAILED
         ]
         if failed:
             key, ret = failed[0]
@@ -180,6 +217,54 @@ class StudySweeper(Sweeper):
                 f"{type(ret._return_value).__name__}: {ret._return_value}; fix it and run the "
                 "same command again (finished jobs are kept)"
             )
+
+    @staticmethod
+    def _job_overrides(spec, arm: str, env: str, seeds: list[int]) -> list[str]:
+        """What a launch sets: its env and first seed, and its job key and run name (one seed),
+        or ``population=K`` with ``{seed}`` in both, for each member to fill in."""
+        one = len(seeds) == 1
+        seed = str(seeds[0]) if one else SEED_IN_KEY
+        key, name = spec.job_key(arm, env, seed), f"ab-{spec.name}-{arm}-{env}-s{seed}"
+        q = "" if one else "'"  # Hydra's override grammar reads an unquoted {...} as a dict
+        population = [] if one else [f"population={len(seeds)}"]
+        return [
+            f"env={env}",
+            f"seed={seeds[0]}",
+            *population,
+            f"job_key={q}{key}{q}",
+            f"tracking.run_name={q}{name}{q}",
+        ]
+
+    def _population_places(self, base, spec: StudySpec, configs) -> set[tuple[str, str]]:
+        """The (arm, env)s whose fresh seeds run as one population job: by
+        ``seeds_as_population`` (``auto``: where the jobs' device is CUDA), where the arm's
+        algorithm trains populations (an arm that cannot runs a job per seed, and says so)."""
+        if self.seeds_as_population not in SEEDS_AS_POPULATION:
+            raise ConfigError(
+                f"hydra.sweeper.seeds_as_population={self.seeds_as_population!r} is not allowed: "
+                f"one of {', '.join(SEEDS_AS_POPULATION)}"
+            )
+        if self.seeds_as_population == "false":
+            return set()
+        places = set()
+        for arm, env in configs:
+            device = configs[(arm, env)].get("device", "cpu")
+            on_gpu = device == "cuda" or (device == "auto" and _cuda_available())
+            if self.seeds_as_population == "auto" and not on_gpu:
+                continue
+            try:
+                self._job_config([*base, "population=2"], spec, arm, env)
+            except ConfigError as e:
+                log.info("study %r: arm %r runs a job per seed on %s (%s)", spec.name, arm, env, e)
+                continue
+            places.add((arm, env))
+        if places:
+            log.info(
+                "study %r: each round's new seeds run as one population job for %s",
+                spec.name,
+                ", ".join(f"{arm} on {env}" for arm, env in sorted(places)),
+            )
+        return places
 
     # --- checks before anything runs ----------------------------------------------------------
     def _base_overrides(self, arguments: list[str]) -> list[str]:
@@ -194,7 +279,8 @@ class StudySweeper(Sweeper):
             if key in STUDY_KEYS:
                 raise ConfigError(
                     f"{override.input_line}: the study sets {key} for each job (seeds: "
-                    "hydra.sweeper.seeds, envs: hydra.sweeper.envs)"
+                    "hydra.sweeper.seeds, envs: hydra.sweeper.envs, populations: "
+                    "hydra.sweeper.seeds_as_population)"
                 )
         return list(arguments)
 
@@ -240,6 +326,12 @@ class StudySweeper(Sweeper):
                 file=sys.stderr,
             )
         log.info("study %r: %s", spec.name, equal_line(design))
+
+
+def _cuda_available() -> bool:
+    import torch
+
+    return torch.cuda.is_available()
 
 
 def _seeds(counts: list[int]) -> str:

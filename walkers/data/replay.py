@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
+import logging
+from collections.abc import Sequence
 from typing import NamedTuple
 
 import numpy as np
 import torch
 
 from walkers.data.episodes import Episode
-from walkers.seeding import restore_generator
+from walkers.random_streams import RandomStreams
+
+log = logging.getLogger("walkers")
 
 
 class Batch(NamedTuple):
@@ -27,43 +31,55 @@ DATA_FIELDS = ("obs", "action", "reward", "next_obs", "terminated", "episode_end
 
 
 class ReplayBuffer:
-    """Ring buffer of transitions in preallocated float32 tensors on ``device``.
+    """The ring buffers of a population's K members (one for a single agent), as one set of
+    preallocated ``(K, capacity, ...)`` float32 tensors on ``device``.
 
-    Stores what TD3/DDPG read (obs, action, reward, next_obs, terminated): about 170 MB for 1M
-    Walker2d transitions, plus one byte per transition marking episode ends, so a saved buffer
-    can be cut back into episodes (a "replay" dataset, :mod:`walkers.collect`). Sampling draws
-    indices with its own ``torch.Generator`` so a seeded run samples the same batches every time.
+    Stores what the off-policy agents read (obs, action, reward, next_obs, terminated): about
+    170 MB per member for 1M Walker2d transitions, plus one byte per transition marking episode
+    ends, so a saved buffer can be cut back into episodes (a "replay" dataset,
+    :mod:`walkers.collect`). The members step together, so they hold equally many transitions.
+    :meth:`sample` draws every member's mini-batch in one op, member k's rows from its own
+    counter-based stream (:class:`~walkers.random_streams.RandomStreams`, keyed by its seed), so
+    a seeded run samples the same batches every time, on any device, and a member samples what a
+    single run of its seed samples. A member's :meth:`member_state_dict` is a single agent's
+    :meth:`state_dict`.
     """
 
-    def __init__(self, capacity: int, obs_dim: int, act_dim: int, device="cpu", seed: int = 0):
-        self.capacity = int(capacity)
+    def __init__(
+        self, capacity: int, obs_dim: int, act_dim: int, device="cpu", seeds: Sequence[int] = (0,)
+    ):
+        self.capacity, self.members = int(capacity), len(seeds)
         self.device = torch.device(device)
         kw = dict(dtype=torch.float32, device=self.device)
-        self.obs = torch.empty(self.capacity, obs_dim, **kw)
-        self.next_obs = torch.empty(self.capacity, obs_dim, **kw)
-        self.action = torch.empty(self.capacity, act_dim, **kw)
-        self.reward = torch.empty(self.capacity, **kw)
-        self.terminated = torch.empty(self.capacity, **kw)
-        self.episode_end = torch.zeros(self.capacity, dtype=torch.bool, device=self.device)
+        k, n = self.members, self.capacity
+        self.obs = torch.empty(k, n, obs_dim, **kw)
+        self.next_obs = torch.empty(k, n, obs_dim, **kw)
+        self.action = torch.empty(k, n, act_dim, **kw)
+        self.reward = torch.empty(k, n, **kw)
+        self.terminated = torch.empty(k, n, **kw)
+        self.episode_end = torch.zeros(k, n, dtype=torch.bool, device=self.device)
         self.pos = 0
         self.size = 0
         self.holds_dataset = False  # a fixed dataset's transitions (hold_dataset), never refilled
-        self.generator = torch.Generator(device=self.device)
-        self.generator.manual_seed(seed)
+        self.sampler = RandomStreams.of_seeds(seeds, "replay", self.device)
+        self._rows = torch.arange(k, device=self.device)[:, None]
 
     def __len__(self) -> int:
         return self.size
 
-    def add(
-        self, obs, action, reward: float, next_obs, terminated: bool, episode_end: bool = False
-    ) -> None:
+    def add(self, obs, action, reward, next_obs, terminated, episode_end=False) -> None:
+        """One transition per member: ``(K, ...)`` arrays (or one member's, for K = 1)."""
         i = self.pos
-        self.obs[i] = torch.as_tensor(obs)
-        self.action[i] = torch.as_tensor(action)
-        self.reward[i] = reward
-        self.next_obs[i] = torch.as_tensor(next_obs)
-        self.terminated[i] = float(terminated)
-        self.episode_end[i] = episode_end
+        self.obs[:, i] = torch.as_tensor(np.asarray(obs, dtype=np.float32)).view(self.members, -1)
+        self.action[:, i] = torch.as_tensor(np.asarray(action, dtype=np.float32)).view(
+            self.members, -1
+        )
+        self.next_obs[:, i] = torch.as_tensor(np.asarray(next_obs, dtype=np.float32)).view(
+            self.members, -1
+        )
+        self.reward[:, i] = torch.as_tensor(np.asarray(reward, dtype=np.float32))
+        self.terminated[:, i] = torch.as_tensor(np.asarray(terminated, dtype=np.float32))
+        self.episode_end[:, i] = torch.as_tensor(np.asarray(episode_end, dtype=bool))
         self.pos = (i + 1) % self.capacity
         self.size = min(self.size + 1, self.capacity)
 
@@ -73,35 +89,51 @@ class ReplayBuffer:
         checkpoint's sampler state loaded later leaves them in place."""
         n = len(data["obs"])
         for name, values in data.items():
-            getattr(self, name)[:n] = values.to(self.device)
+            getattr(self, name)[:, :n] = values.to(self.device)
         self.pos, self.size, self.holds_dataset = 0, n, True
 
     def sample(self, batch_size: int) -> Batch:
-        idx = torch.randint(
-            0, self.size, (batch_size,), device=self.device, generator=self.generator
-        )
+        """Every member's mini-batch, ``(K, batch_size, ...)`` tensors, and the rows drawn."""
+        idx = self.sampler.integers(self.size, batch_size)
+        rows = self._rows
         return Batch(
-            self.obs[idx],
-            self.action[idx],
-            self.reward[idx],
-            self.next_obs[idx],
-            self.terminated[idx],
+            self.obs[rows, idx],
+            self.action[rows, idx],
+            self.reward[rows, idx],
+            self.next_obs[rows, idx],
+            self.terminated[rows, idx],
             idx,
         )
 
     def state_dict(self, with_data: bool) -> dict:
-        """Sampler state always; the transitions themselves only ``with_data`` (they are large)."""
-        state = {"pos": self.pos, "size": self.size, "generator": self.generator.get_state()}
+        """A single agent's buffer state (member 0 of a population of one)."""
+        return self.member_state_dict(0, with_data)
+
+    def member_state_dict(self, i: int, with_data: bool) -> dict:
+        """Member ``i``'s as a single agent's: the sampler state always; the transitions
+        themselves only ``with_data`` (they are large)."""
+        state = {"pos": self.pos, "size": self.size, "sampler": self.sampler.member_state_dict(i)}
         if with_data:
             n = self.size
-            state["data"] = {name: getattr(self, name)[:n].cpu().clone() for name in DATA_FIELDS}
+            state["data"] = {name: getattr(self, name)[i, :n].cpu().clone() for name in DATA_FIELDS}
         return state
 
     def load_state_dict(self, state: dict) -> None:
-        restore_generator(self.generator, state["generator"], "the replay buffer's sampler")
+        self.load_member_state_dict(0, state)
+
+    def load_member_state_dict(self, i: int, state: dict) -> None:
+        """A single agent's buffer state into member ``i`` (the position, size and sampler are
+        the members' in common: the last member loaded sets them)."""
+        if "sampler" in state:
+            self.sampler.load_member_state_dict(i, state["sampler"])
+        else:  # saved by a walkers that sampled with a torch.Generator: a stream of its own
+            log.warning(
+                "the replay buffer's sampler was saved by an older walkers (a torch.Generator); "
+                "it goes on with its new stream from the start: other batches than that run's"
+            )
         if "data" in state:
             for name, values in state["data"].items():
-                getattr(self, name)[: len(values)] = values.to(self.device)
+                getattr(self, name)[i, : len(values)] = values.to(self.device)
             self.pos, self.size = state["pos"], state["size"]
         elif not self.holds_dataset:  # restarted without its transitions: refill from empty
             self.pos, self.size = 0, 0

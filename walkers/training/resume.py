@@ -10,7 +10,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from walkers.errors import ConfigError
 from walkers.tracking import differing_keys, flatten
-from walkers.training.run import TrainingRun
+from walkers.training.run import TrainingRun, job_key_of_seed
 
 #: Keys a resumed run takes from the new command line; everything else comes from its checkpoint.
 RESUME_OVERRIDABLE = (
@@ -56,7 +56,8 @@ def load_run(client, cfg: DictConfig, overrides, run_id: str | None = None):
             stored[key] = cfg[key]
     stored.tracking = cfg.tracking
     # a sweep job's trial and key are the current attempt's (a retried trial has a new number)
-    stored.trial, stored.job_key = cfg.trial, cfg.get("job_key")
+    # (a study's population job: each member keyed by its own seed)
+    stored.trial, stored.job_key = cfg.trial, job_key_of_seed(cfg.get("job_key"), stored.seed)
     stored.resume = run_id
     return stored, state
 
@@ -76,7 +77,7 @@ def load_population(client, cfg: DictConfig, overrides):
 
     def shared_settings(member_cfg: DictConfig) -> dict:
         settings = flatten(OmegaConf.to_container(member_cfg, resolve=True))
-        return {k: v for k, v in settings.items() if k not in ("seed", "resume")}
+        return {k: v for k, v in settings.items() if k not in ("seed", "resume", "job_key")}
 
     (first_cfg, first_state), first = members[0], shared_settings(members[0][0])
     for run_id, (member_cfg, state) in zip(run_ids[1:], members[1:], strict=True):
@@ -98,5 +99,5 @@ def load_population(client, cfg: DictConfig, overrides):
                 )
     population = first_cfg.copy()
     population.population = len(members)
-    population.resume = run_ids
+    population.resume, population.job_key = run_ids, cfg.get("job_key")
     return population, members

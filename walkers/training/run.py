@@ -156,8 +156,11 @@ class TrainingRun:
         experiment = client.get_experiment_by_name(cfg.tracking.experiment)
         if experiment is None:
             return []
-        query = tracking.tags_equal({tracking.JOB_KEY_TAG: cfg.job_key})
-        return tracking.search_runs(client, experiment.experiment_id, query)
+        runs = []
+        for key in dict.fromkeys(run_job_keys(cfg)):  # one key, or a key per member
+            query = tracking.tags_equal({tracking.JOB_KEY_TAG: key})
+            runs += tracking.search_runs(client, experiment.experiment_id, query)
+        return runs
 
     @staticmethod
     def finished_attempt(client, cfg: DictConfig):
@@ -272,6 +275,22 @@ class TrainingRun:
     @property
     def url(self) -> str:
         return self.tracker.url
+
+
+#: In a job's key, what each of its runs replaces by its own seed (a study's population job:
+#: each member run is keyed as the single job of its seed would be).
+SEED_IN_KEY = "{seed}"
+
+
+def job_key_of_seed(job_key: str | None, seed: int) -> str | None:
+    """The key of the job's run of ``seed``: ``job_key`` with :data:`SEED_IN_KEY` filled in."""
+    return job_key.replace(SEED_IN_KEY, str(seed)) if job_key else job_key
+
+
+def run_job_keys(cfg: DictConfig) -> list[str]:
+    """The job key of each run the job makes: one for a single run, one per member of a
+    population (the same key for all, unless it holds :data:`SEED_IN_KEY`)."""
+    return [job_key_of_seed(cfg.job_key, cfg.seed + i) for i in range(cfg.population)]
 
 
 @contextmanager

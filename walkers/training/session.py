@@ -37,7 +37,14 @@ from walkers.training.loops import (
     train_vectorized,
 )
 from walkers.training.provenance import MEMBER_TAG, POPULATION_TAG, shareable
-from walkers.training.run import ENV_STEP_AXIS, GRADIENT_STEP_AXIS, TrainingRun, ending
+from walkers.training.run import (
+    ENV_STEP_AXIS,
+    GRADIENT_STEP_AXIS,
+    SEED_IN_KEY,
+    TrainingRun,
+    ending,
+    job_key_of_seed,
+)
 from walkers.training.settings import RunSettings
 from walkers.training.validate import check_environment, is_offline, validate
 
@@ -60,6 +67,8 @@ def train(
     ``reporter`` makes what a single run's evaluations report to (a sweep's trial)."""
     resume.check_resume_given(cfg.resume)
     check_environment(cfg)  # before anything is created
+    if cfg.population == 1 and cfg.job_key:  # the key of the one run: its seed's
+        cfg.job_key = job_key_of_seed(cfg.job_key, cfg.seed)
     if not cfg.resume:
         validate(cfg)  # before anything is created
         warn_short_warmup(cfg)
@@ -200,11 +209,15 @@ def _book(cfg: DictConfig, run, agent, env, eval_env, axis=ENV_STEP_AXIS, video_
 
 
 def member_config(cfg: DictConfig, i: int) -> DictConfig:
-    """Member ``i``'s config: seed ``seed + i``, and ``population=1`` (what resuming it means)."""
+    """Member ``i``'s config: seed ``seed + i``, and ``population=1`` (what resuming it means);
+    a job key or run name with ``{seed}`` in it gets the member's seed there (a study's jobs)."""
     member = cfg.copy()
     member.seed = cfg.seed + i
     member.population = 1
-    if cfg.tracking.run_name:
+    member.job_key = job_key_of_seed(cfg.job_key, member.seed)
+    if SEED_IN_KEY in (cfg.tracking.run_name or ""):
+        member.tracking.run_name = job_key_of_seed(cfg.tracking.run_name, member.seed)
+    elif cfg.tracking.run_name:
         member.tracking.run_name = f"{cfg.tracking.run_name}-m{i}"
     return member
 

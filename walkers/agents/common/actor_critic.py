@@ -42,7 +42,8 @@ from walkers.agents.common.networks import EnsembleActor, make_critic
 from walkers.agents.common.noise import GaussianNoise
 from walkers.agents.common.population import Member
 from walkers.data.replay import Batch, ReplayBuffer
-from walkers.seeding import numpy_rng, stream_seeds
+from walkers.random_streams import RandomStreams
+from walkers.seeding import numpy_rng
 
 
 class ActorCritic(Agent):
@@ -99,7 +100,14 @@ class ActorCritic(Agent):
         self.adam_betas = (0.9, 0.999) if adam_betas is None else tuple(adam_betas)
         self.buffer_size, self.compile = int(buffer_size), compile
 
-        torch.manual_seed(seed)  # the networks the subclass builds next draw from here
+        self.member_seeds = list(range(seed, seed + self.population))
+        # The networks the subclass builds next draw from torch's RNG seeded here; in a
+        # population each member's part draws from its own seed's (_per_member).
+        self._init_rng_states = []
+        for member_seed in self.member_seeds:
+            torch.manual_seed(member_seed)
+            self._init_rng_states.append(torch.get_rng_state())
+        torch.manual_seed(seed)
         self.steps = 0  # transitions observed (per member)
         self.num_updates = 0  # critic updates done
         # Uniform random actions while steps < random_until, no updates while steps < update_after:
@@ -112,28 +120,56 @@ class ActorCritic(Agent):
     def build_actor(self, actor_class: type[nn.Module] = EnsembleActor, **options) -> nn.Module:
         """The actors of every member, one ensemble of ``population``: ``actor_class(n, obs_dim,
         act_dim, hidden_sizes, action_low, action_high, **options)``."""
-        return actor_class(
-            self.population,
-            self.obs_dim,
-            self.act_dim,
-            self.hidden_sizes,
-            self.action_low,
-            self.action_high,
-            **options,
-        ).to(self.device)
+
+        def actors(n: int) -> nn.Module:
+            return actor_class(
+                n,
+                self.obs_dim,
+                self.act_dim,
+                self.hidden_sizes,
+                self.action_low,
+                self.action_high,
+                **options,
+            ).to(self.device)
+
+        return self._per_member(actors, 1)
 
     def build_critic(self, critic_class: type[nn.Module] | None = None, **options) -> nn.Module:
         """The critics of every member as one ensemble of ``num_critics * population``:
         ``critic_class(obs_dim, act_dim, critic_hidden_sizes, n, **options)``, by default the
         declared ``critic_architecture``."""
-        n = self.num_critics * self.population
-        if critic_class is None:
-            return make_critic(
-                self.critic_architecture, self.obs_dim, self.act_dim, self.critic_hidden_sizes, n
+
+        def critics(n: int) -> nn.Module:
+            if critic_class is None:
+                return make_critic(
+                    self.critic_architecture,
+                    self.obs_dim,
+                    self.act_dim,
+                    self.critic_hidden_sizes,
+                    n,
+                ).to(self.device)
+            return critic_class(
+                self.obs_dim, self.act_dim, self.critic_hidden_sizes, n, **options
             ).to(self.device)
-        return critic_class(self.obs_dim, self.act_dim, self.critic_hidden_sizes, n, **options).to(
-            self.device
-        )
+
+        return self._per_member(critics, self.num_critics)
+
+    def _per_member(self, build: Callable[[int], nn.Module], per_member: int) -> nn.Module:
+        """``build(per_member * population)``, each member's slice initialised as a single run
+        of its seed initialises its own (``build(per_member)`` from torch's RNG as that run's
+        would stand), so that member k starts where a single run of seed k starts."""
+        network = build(per_member * self.population)
+        if self.population == 1:
+            return network
+        for k, rng_state in enumerate(self._init_rng_states):
+            torch.set_rng_state(rng_state)
+            own = build(per_member).state_dict()
+            self._init_rng_states[k] = torch.get_rng_state()
+            cut = slice(k * per_member, (k + 1) * per_member)
+            with torch.no_grad():
+                for name, value in network.state_dict().items():
+                    value[cut] = own[name]
+        return network
 
     @staticmethod
     def target_of(network: nn.Module) -> nn.Module:
@@ -149,16 +185,18 @@ class ActorCritic(Agent):
     def build_members(
         self, exploration_noise: Callable[[np.random.Generator], GaussianNoise]
     ) -> list[Member]:
-        """Each member's own parts: its exploration stream, its noise process drawing from that
-        stream (``exploration_noise(rng)``) and its replay buffer with its own sampler seed."""
+        """Each member's own parts: its exploration stream and its noise process drawing from
+        that stream (``exploration_noise(rng)``). With them come the parts the members hold as
+        one: the replay buffer (:attr:`buffer`, each member's transitions and sampling stream) and
+        the update's noise streams (:meth:`noise_like`), keyed by the members' seeds."""
+        self.buffer = ReplayBuffer(
+            self.buffer_size, self.obs_dim, self.act_dim, self.device, self.member_seeds
+        )
+        self.update_noise = RandomStreams.of_seeds(self.member_seeds, "update_noise", self.device)
         members = []
-        for member_seed in range(self.seed, self.seed + self.population):
+        for member_seed in self.member_seeds:
             rng = numpy_rng(member_seed, "exploration")
-            replay_seed = stream_seeds(member_seed, "replay")[0]
-            buffer = ReplayBuffer(
-                self.buffer_size, self.obs_dim, self.act_dim, self.device, replay_seed
-            )
-            members.append(Member(rng, exploration_noise(rng), buffer))
+            members.append(Member(rng, exploration_noise(rng)))
         return members
 
     def compile_losses(self) -> None:
@@ -171,11 +209,6 @@ class ActorCritic(Agent):
         mode = "reduce-overhead" if self.device.type == "cuda" else None
         for name in self.compiled_losses:
             setattr(self, name, torch.compile(getattr(self, name), mode=mode))
-
-    @property
-    def buffer(self) -> ReplayBuffer:
-        """A single agent's replay buffer (member 0's in a population)."""
-        return self.members[0].buffer
 
     # --- acting: one observation and one transition per member, in member order --------------
     def act_population(self, obs: np.ndarray, explore: bool) -> np.ndarray:
@@ -194,8 +227,9 @@ class ActorCritic(Agent):
         raise NotImplementedError
 
     def observe_population(self, transitions: Sequence[Transition]) -> None:
+        fields = ("obs", "action", "reward", "next_obs", "terminated", "episode_over")
+        self.buffer.add(*(np.stack([getattr(t, f) for t in transitions]) for f in fields))
         for member, t in zip(self.members, transitions, strict=True):
-            member.buffer.add(t.obs, t.action, t.reward, t.next_obs, t.terminated, t.episode_over)
             if t.episode_over:
                 member.noise.reset()
         self.steps += 1
@@ -219,12 +253,12 @@ class ActorCritic(Agent):
         self.num_updates += 1
         return True
 
-    @staticmethod
-    def noise_like(x: torch.Tensor) -> torch.Tensor:
-        """eps ~ N(0, I) shaped like ``x``: every random number of an update is drawn here,
-        outside the losses, so a compiled update draws the same numbers as eager (and a parity
-        test can hand in another implementation's)."""
-        return torch.randn_like(x)
+    def noise_like(self, x: torch.Tensor) -> torch.Tensor:
+        """eps ~ N(0, I) shaped like ``x`` ``(K, ...)``, row k from member k's update-noise
+        stream: every random number of an update is drawn here, outside the losses, so a
+        compiled update draws the same numbers as eager (and a parity test can hand in another
+        implementation's)."""
+        return self.update_noise.normal_like(x)
 
     def record_health(
         self, bad: torch.Tensor, delayed_bad: torch.Tensor | None
@@ -251,10 +285,9 @@ class ActorCritic(Agent):
         return (q - y.unsqueeze(1)).pow(2).mean(dim=2).sum(dim=1)
 
     def sample(self) -> Batch:
-        """One mini-batch per member, stacked: ``(K, batch, ...)`` tensors, with the rows each
-        member drew from its buffer (``index``)."""
-        batches = [m.buffer.sample(self.batch_size) for m in self.members]
-        return Batch(*(torch.stack(field) for field in zip(*batches, strict=True)))
+        """One mini-batch per member, drawn together: ``(K, batch, ...)`` tensors, with the
+        rows each member drew from its buffer (``index``)."""
+        return self.buffer.sample(self.batch_size)
 
     def _per_critic(self, x: torch.Tensor) -> torch.Tensor:
         """Each member's inputs once per critic: ``(K, N, d)`` -> ``(K * C, N, d)`` (a view for

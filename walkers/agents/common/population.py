@@ -22,27 +22,23 @@ from walkers.agents.base import Policy
 from walkers.agents.common.health import NonFiniteGuard
 from walkers.agents.common.noise import GaussianNoise
 from walkers.data.replay import ReplayBuffer
+from walkers.random_streams import RandomStreams
 
 
 @dataclass
 class Member:
-    """What one member (one seed) has of its own besides its slice of the networks."""
+    """What one member (one seed) has of its own besides its slices of the networks, the replay
+    buffer and the update's noise streams."""
 
     rng: np.random.Generator  # uniform warm-up actions and exploration noise
     noise: GaussianNoise
-    buffer: ReplayBuffer
 
-    def state_dict(self, with_buffer: bool) -> dict:
-        return {
-            "rng": self.rng.bit_generator.state,
-            "noise": self.noise.state_dict(),
-            "buffer": self.buffer.state_dict(with_data=with_buffer),
-        }
+    def state_dict(self) -> dict:
+        return {"rng": self.rng.bit_generator.state, "noise": self.noise.state_dict()}
 
     def load_state_dict(self, state: dict) -> None:
         self.rng.bit_generator.state = state["rng"]
         self.noise.load_state_dict(state["noise"])
-        self.buffer.load_state_dict(state["buffer"])
 
 
 class Population(Protocol):
@@ -50,6 +46,8 @@ class Population(Protocol):
     :class:`~walkers.agents.common.actor_critic.ActorCritic`, which imports this module)."""
 
     members: list[Member]
+    buffer: ReplayBuffer
+    update_noise: RandomStreams
     guard: NonFiniteGuard
     actor: torch.nn.Module
     device: torch.device
@@ -85,7 +83,9 @@ def member_state_dict(agent: Population, i: int, with_buffer: bool = False) -> d
     shared = ("steps", "num_updates", "random_until", "update_after")
     return state | {
         **{key: getattr(agent, key) for key in shared},
-        **agent.members[i].state_dict(with_buffer),  # rng, noise, buffer
+        **agent.members[i].state_dict(),  # rng, noise
+        "buffer": agent.buffer.member_state_dict(i, with_buffer),
+        "update_noise": agent.update_noise.member_state_dict(i),
         "guard": agent.guard.member_state_dict(i),
     }
 
@@ -106,6 +106,9 @@ def load_member_state_dict(agent: Population, i: int, state: dict) -> None:
                 value[cut] = state[name][key]
     agent.load_counters(state)
     agent.members[i].load_state_dict(state)
+    agent.buffer.load_member_state_dict(i, state["buffer"])
+    if "update_noise" in state:  # saved before the update's noise had streams of its own
+        agent.update_noise.load_member_state_dict(i, state["update_noise"])
     agent.guard.load_member_state_dict(i, state["guard"])
     agent.refill_if_lost(state["buffer"])
 

@@ -292,8 +292,18 @@ def contenders(only: str | None = None, population: tuple[int, ...] = (2, 4)) ->
                 2, k=2, hidden_sizes=[HIDDEN, HIDDEN], **common
             ),
         }
-    else:  # on a GPU the paper's CrossQ width, K seeds at a time
+    else:  # on a GPU the paper's CrossQ width, K seeds at a time; whole updates captured
         loops |= {f"walkers CrossQ 2048 K={k}": partial(crossq_population, k) for k in population}
+        captured = {"capture": True, "hidden_sizes": [HIDDEN, HIDDEN], **common}
+        loops |= {
+            "walkers TD3 capture": lambda: WalkersLoop(TD3, **captured),
+            "walkers SAC capture": lambda: WalkersLoop(SAC, **captured),
+            **{
+                f"walkers TD3 capture K={k}": partial(PopulationLoop, k, **captured)
+                for k in population
+                if k > 1
+            },
+        }
     try:
         import stable_baselines3  # noqa: F401
 

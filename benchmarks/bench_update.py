@@ -5,7 +5,8 @@
 
 Walker2d shapes (17-d observations, 6 actions), 256-256 networks, batch 256, fused Adam in all;
 walkers eager and with ``compile=True`` (its loss computations through torch.compile; CUDA
-graphs on a GPU). The plain reference is the textbook layout: two separate critic modules,
+graphs on a GPU), and on a GPU with ``capture=True`` (the whole update as CUDA graphs). The plain
+reference is the textbook layout: two separate critic modules,
 nn.Linear layers. Rounds alternate so machine noise hits all alike; the table reports medians
 and the ratio (below 1: walkers is faster). On the CPU a second table breaks the eager update
 down by kind of work. A benchmark, not a test: nothing here asserts on time.
@@ -90,26 +91,28 @@ class PlainTD3Update:
                         tp.mul_(0.995).add_(p, alpha=0.005)
 
 
-def walkers_agent(device: torch.device, compile: bool = False) -> TD3:
+def walkers_agent(device: torch.device, compile: bool = False, capture: bool = False) -> TD3:
     agent = TD3(
         OBS,
         [-1.0] * ACT,
         [1.0] * ACT,
         device=str(device),
-        **defaults_for(TD3, learning_starts=0, buffer_size=CAPACITY, compile=compile),
+        **defaults_for(
+            TD3, learning_starts=0, buffer_size=CAPACITY, compile=compile, capture=capture
+        ),
     )
     rng = np.random.default_rng(0)
     for _ in range(CAPACITY // 10):
         o = rng.normal(size=OBS).astype(np.float32)
         a = rng.uniform(-1, 1, ACT).astype(np.float32)
         agent.observe(Transition(o, a, 1.0, o, False, False))
-    for _ in range(4):  # a compiled update compiles here, not inside the timed rounds
+    for _ in range(8):  # compiled or captured here, not inside the timed rounds
         agent.update()
     return agent
 
 
-def walkers_update(device: torch.device, compile: bool = False):
-    return walkers_agent(device, compile).update
+def walkers_update(device: torch.device, compile: bool = False, capture: bool = False):
+    return walkers_agent(device, compile, capture).update
 
 
 #: The phases of walkers' TD3 update, by the name the update calls them under (td3.py).
@@ -236,6 +239,8 @@ def main():
         "walkers TD3": walkers_update(device),
         "walkers TD3 compile": walkers_update(device, compile=True),
     }
+    if device.type == "cuda":  # the whole update as CUDA graphs (algo.capture=true)
+        contenders["walkers TD3 capture"] = walkers_update(device, capture=True)
     times = alternate(contenders, lambda fn: time_ms(fn, args.updates, device), args.reps)
     where = f"{torch.get_num_threads()} threads" if device.type == "cpu" else str(device)
     print(

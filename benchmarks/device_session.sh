@@ -1,18 +1,20 @@
 #!/usr/bin/env bash
-# The one command of a lent GPU call, about 6 minutes in all (each part under its own timeout):
+# The one command of a lent GPU call, at most 8 minutes in all (each part under its own timeout):
 #
 #   here:   bash benchmarks/device_wheels.sh          # once: the wheels the machine lacks, in .whl/
-#   device: run(command="bash benchmarks/device_session.sh", carry=[".whl"], timeout_s=480)
+#   device: run(command="bash benchmarks/device_session.sh", carry=[".whl"], timeout_s=540)
 #
-# Parts (all by default, or name some: `bash benchmarks/device_session.sh update tests`): update
-# (the TD3 update vs a plain one, and by phase), throughput (TD3/SAC/PPO, populations 1/5/16), dt,
-# envs (env stepping on the machine's cores), tests (make test-gpu). Each part's log goes to $OUT
-# (what comes back), a line per part to $OUT/summary.txt, and the logs' ends are printed last.
+# Parts, in this order (all by default, or name some: `bash benchmarks/device_session.sh capture
+# update`): capture (the captured update against the eager one, tests/test_capture.py, and the
+# streams on CUDA), update (the TD3 update: plain, walkers eager, compiled, captured; and by
+# phase), throughput (TD3/SAC/PPO, captured too, populations 1/5/16), dt, envs (env stepping on
+# the machine's cores), tests (make test-gpu). Each part's log goes to $OUT (what comes back), a
+# line per part to $OUT/summary.txt, and the logs' ends are printed last.
 set -uo pipefail
 export PYTHONUNBUFFERED=1 MUJOCO_GL=egl PYTHONPATH=$PWD
 OUT=${OUT:-/tmp/device_session}
 mkdir -p "$OUT"
-parts=${*:-update throughput dt envs tests}
+parts=${*:-capture update throughput dt envs tests}
 
 bash benchmarks/device_venv.sh > "$OUT/setup.log" 2>&1 || { tail -20 "$OUT/setup.log"; exit 1; }
 tail -1 "$OUT/setup.log"
@@ -26,12 +28,13 @@ part() {  # part NAME SECONDS COMMAND...
   echo "$name: exit $rc after $((SECONDS - start)) s (limit $limit)" | tee -a "$OUT/summary.txt"
 }
 py=.venv/bin/python
+part capture 90 $py -m pytest -q -p no:cacheprovider tests/test_capture.py tests/test_random_streams.py
 part update 75 $py benchmarks/bench_update.py --device cuda --reps 3 --phases
-part throughput 120 $py benchmarks/bench_throughput.py --device cuda --only "TD3,SAC,PPO" \
+part throughput 130 $py benchmarks/bench_throughput.py --device cuda --only "TD3,SAC,PPO" \
   --population 1,5,16 --reps 2 --steps 200
 part dt 25 $py benchmarks/bench_dt.py --devices cuda --reps 2 --steps 10
-part envs 40 $py benchmarks/bench_envs.py --envs 1,4,8,16 --steps 2000 --reps 2
-part tests 120 make test-gpu ARGS="-n 8 -p no:cacheprovider"
+part envs 30 $py benchmarks/bench_envs.py --envs 1,4,8,16 --steps 2000 --reps 2
+part tests 100 make test-gpu ARGS="-n 8 -p no:cacheprovider"
 
 for name in $parts; do
   [[ -f "$OUT/$name.log" ]] && { echo "=== $name"; tail -c 2200 "$OUT/$name.log"; }

@@ -75,7 +75,12 @@ class CrossQ(SoftActorCritic):
         self.critic_optimizer = self.adam(self.critic, self.critic_lr)
         self.build_temperature()
         self.members = self.build_members(self.exploration_noise)
-        self.compile_losses()
+        self.compile_update()
+
+    @property
+    def update_period(self) -> int:
+        """The delayed steps (actor, temperature) run every ``policy_delay``-th update."""
+        return self.policy_delay
 
     # --- learning ---------------------------------------------------------------------------------
     def update(self) -> dict[str, torch.Tensor]:

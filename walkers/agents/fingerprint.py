@@ -57,8 +57,9 @@ class NoFingerprint(Exception):
 def update_fingerprint(algo: Mapping) -> list[float]:
     """The fingerprint of ``algo`` (a run's ``algo`` config) under today's code (cached)."""
     algo = OmegaConf.to_container(algo, resolve=True) if OmegaConf.is_config(algo) else dict(algo)
-    if "compile" in algo:  # the same maths, compiled: not part of what it computes
-        algo["compile"] = False
+    for key in ("compile", "capture"):  # the same maths, compiled: not part of what it computes
+        if key in algo:
+            algo[key] = False
     key = hashlib.sha256(json.dumps([algo, code_digest()], sort_keys=True).encode()).hexdigest()[
         :24
     ]

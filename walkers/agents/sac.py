@@ -112,7 +112,7 @@ class SAC(SoftActorCritic):
         self.critic_optimizer = self.adam(self.critic, self.critic_lr)
         self.build_temperature()
         self.members = self.build_members(self.exploration_noise)
-        self.compile_losses()
+        self.compile_update()
 
     # --- learning: Algorithm 1's loop body (one gradient step) -----------------------------------
     def update(self) -> dict[str, torch.Tensor]:

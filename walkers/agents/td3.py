@@ -78,7 +78,7 @@ class TD3(ActorCritic):
         self.actor_optimizer = self.adam(self.actor, self.actor_lr)
         self.critic_optimizer = self.adam(self.critic, self.critic_lr)
         self.members = self.build_members(self.exploration_noise)
-        self.compile_losses()
+        self.compile_update()
 
     def _require(self, knobs: dict, idea_used: bool) -> None:
         """The knobs of an idea are given exactly when the class uses the idea."""
@@ -91,6 +91,11 @@ class TD3(ActorCritic):
                     f"{name}.__init__() got an unexpected keyword argument {knob!r} "
                     f"({name} turns that idea of TD3 off)"
                 )
+
+    @property
+    def update_period(self) -> int:
+        """The delayed step runs every ``policy_delay``-th update."""
+        return self.policy_delay
 
     # --- acting: a ~ clip(pi(s) + eps, low, high) ------------------------------------------------
     def exploration_noise(self, rng: np.random.Generator) -> GaussianNoise:

@@ -60,6 +60,7 @@ class ReplayBuffer:
         self.episode_end = torch.zeros(k, n, dtype=torch.bool, device=self.device)
         self.pos = 0
         self.size = 0
+        self._size_t = torch.zeros((), dtype=torch.int64, device=self.device)  # size, for sample
         self.holds_dataset = False  # a fixed dataset's transitions (hold_dataset), never refilled
         self.sampler = RandomStreams.of_seeds(seeds, "replay", self.device)
         self._rows = torch.arange(k, device=self.device)[:, None]
@@ -81,7 +82,13 @@ class ReplayBuffer:
         self.terminated[:, i] = torch.as_tensor(np.asarray(terminated, dtype=np.float32))
         self.episode_end[:, i] = torch.as_tensor(np.asarray(episode_end, dtype=bool))
         self.pos = (i + 1) % self.capacity
-        self.size = min(self.size + 1, self.capacity)
+        self._set_size(min(self.size + 1, self.capacity))
+
+    def _set_size(self, size: int) -> None:
+        """The size, and its copy on the device that :meth:`sample` reads (no host value is
+        baked into a captured update: the same graph samples from a growing buffer)."""
+        self.size = size
+        self._size_t.fill_(size)
 
     def hold_dataset(self, data: dict[str, torch.Tensor]) -> None:
         """Fill the buffer with a fixed dataset's transitions (``data``: a tensor per field of
@@ -90,11 +97,12 @@ class ReplayBuffer:
         n = len(data["obs"])
         for name, values in data.items():
             getattr(self, name)[:, :n] = values.to(self.device)
-        self.pos, self.size, self.holds_dataset = 0, n, True
+        self.pos, self.holds_dataset = 0, True
+        self._set_size(n)
 
     def sample(self, batch_size: int) -> Batch:
         """Every member's mini-batch, ``(K, batch_size, ...)`` tensors, and the rows drawn."""
-        idx = self.sampler.integers(self.size, batch_size)
+        idx = self.sampler.integers(self._size_t, batch_size)
         rows = self._rows
         return Batch(
             self.obs[rows, idx],
@@ -134,9 +142,11 @@ class ReplayBuffer:
         if "data" in state:
             for name, values in state["data"].items():
                 getattr(self, name)[i, : len(values)] = values.to(self.device)
-            self.pos, self.size = state["pos"], state["size"]
+            self.pos = state["pos"]
+            self._set_size(state["size"])
         elif not self.holds_dataset:  # restarted without its transitions: refill from empty
-            self.pos, self.size = 0, 0
+            self.pos = 0
+            self._set_size(0)
 
 
 def first_steps(state: dict, n: int, steps_seen: int) -> dict:

@@ -89,6 +89,16 @@ def _check_implementation(cfg: DictConfig) -> None:
     import_sb3()
 
 
+def _check_capture(cfg: DictConfig) -> None:
+    """``algo.capture`` holds the whole update in CUDA graphs; ``algo.compile`` compiles the
+    losses alone: one or the other."""
+    if OmegaConf.select(cfg, "algo.capture") and OmegaConf.select(cfg, "algo.compile"):
+        raise ConfigError(
+            "algo.capture=true is not allowed with algo.compile=true: capture holds the whole "
+            "update as CUDA graphs, compile only its losses; choose one"
+        )
+
+
 def _check_dataset(cfg: DictConfig) -> None:
     dataset = cfg.get("dataset")
     if is_offline(cfg) and not dataset:
@@ -144,6 +154,7 @@ def validate(cfg: DictConfig) -> None:
         f"at most total_steps ({cfg.total_steps})",
     )
     _check_implementation(cfg)
+    _check_capture(cfg)
     _check_dataset(cfg)
     _check_population(cfg)
     _check_vector_envs(cfg)

@@ -28,6 +28,7 @@ as a single agent and loading it back is :mod:`walkers.agents.common.population`
 from __future__ import annotations
 
 import copy
+import logging
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 
@@ -37,6 +38,7 @@ from torch import nn
 
 from walkers.agents.base import Agent, Transition, resolve_device
 from walkers.agents.common import population as members_io
+from walkers.agents.common.capture import CapturedUpdate
 from walkers.agents.common.health import NonFiniteGuard
 from walkers.agents.common.networks import EnsembleActor, make_critic
 from walkers.agents.common.noise import GaussianNoise
@@ -45,13 +47,15 @@ from walkers.data.replay import Batch, ReplayBuffer
 from walkers.random_streams import RandomStreams
 from walkers.seeding import numpy_rng
 
+log = logging.getLogger("walkers")
+
 
 class ActorCritic(Agent):
     """The shared core (see the module docstring). An algorithm subclasses it: its constructor
     calls this one (settings and counters only: nothing is built yet), sets up its own
     attributes, then builds its parts explicitly with :meth:`build_actor`, :meth:`build_critic`,
     :meth:`target_of`, :meth:`adam` and :meth:`build_members`, in that order (the order of the
-    seeded initialisations), and last :meth:`compile_losses`. It writes its own :meth:`update`
+    seeded initialisations), and last :meth:`compile_update`. It writes its own :meth:`update`
     and :meth:`policy`, and lists its per-member parts beyond the core's (:meth:`member_cuts`)."""
 
     num_critics = 2  # critics per member
@@ -79,6 +83,7 @@ class ActorCritic(Agent):
         adam_betas: Sequence[float] | None = None,  # None: Adam's own (0.9, 0.999)
         population: int = 1,
         compile: bool,
+        capture: bool,
         device: str = "cpu",
         seed: int = 0,
     ):
@@ -99,6 +104,10 @@ class ActorCritic(Agent):
         self.actor_lr, self.critic_lr = actor_lr or lr, critic_lr or lr
         self.adam_betas = (0.9, 0.999) if adam_betas is None else tuple(adam_betas)
         self.buffer_size, self.compile = int(buffer_size), compile
+        # the whole update as CUDA graphs: on CUDA only (the CPU keeps the eager update)
+        self.capture = capture and self.device.type == "cuda"
+        if capture and not self.capture:
+            log.warning("algo.capture=true needs CUDA: on %s the update runs eagerly", self.device)
 
         self.member_seeds = list(range(seed, seed + self.population))
         # The networks the subclass builds next draw from torch's RNG seeded here; in a
@@ -178,9 +187,12 @@ class ActorCritic(Agent):
 
     def adam(self, module: nn.Module, lr: float, betas: Sequence[float] | None = None):
         """Fused Adam on ``module``'s parameters (fused: one kernel, and ``found_inf`` for the
-        NaN guard); ``betas``: the declared ``adam_betas`` unless given."""
+        NaN guard; capturable in a CUDA graph when the update is captured); ``betas``: the
+        declared ``adam_betas`` unless given."""
         betas = self.adam_betas if betas is None else tuple(betas)
-        return torch.optim.Adam(module.parameters(), lr=lr, betas=betas, fused=True)
+        return torch.optim.Adam(
+            module.parameters(), lr=lr, betas=betas, fused=True, capturable=self.capture
+        )
 
     def build_members(
         self, exploration_noise: Callable[[np.random.Generator], GaussianNoise]
@@ -199,11 +211,15 @@ class ActorCritic(Agent):
             members.append(Member(rng, exploration_noise(rng)))
         return members
 
-    def compile_losses(self) -> None:
-        """``compile=True``: the loss computations (:attr:`compiled_losses`), forward and
-        backward, through ``torch.compile`` (fused elementwise work, less dispatch). On CUDA with
-        CUDA graphs (``reduce-overhead``), where a small update is launch-bound. The optimizer
-        steps stay eager: fused Adam is one kernel already and keeps the NaN guard's step skip."""
+    def compile_update(self) -> None:
+        """``capture=True`` on CUDA: the whole :meth:`update` as CUDA graphs
+        (:class:`~walkers.agents.common.capture.CapturedUpdate`). ``compile=True``: the loss
+        computations (:attr:`compiled_losses`), forward and backward, through ``torch.compile``
+        (fused elementwise work, less dispatch); on CUDA with CUDA graphs (``reduce-overhead``),
+        where a small update is launch-bound. The optimizer steps stay eager there: fused Adam
+        is one kernel already and keeps the NaN guard's step skip."""
+        if self.capture:
+            self.update = CapturedUpdate(self, self.update)
         if not self.compile:
             return
         mode = "reduce-overhead" if self.device.type == "cuda" else None
@@ -246,12 +262,23 @@ class ActorCritic(Agent):
         raise NotImplementedError
 
     def begin_update(self) -> bool:
-        """Whether it is time to learn (past the warm-up, a batch in the buffer); if so, counts
-        the update (:attr:`num_updates`: the delayed steps are every d-th)."""
-        if self.steps < self.update_after or len(self.buffer) < self.batch_size:
+        """Whether it is time to learn (:meth:`ready_to_update`); if so, counts the update
+        (:attr:`num_updates`: the delayed steps are every d-th)."""
+        if not self.ready_to_update():
             return False
         self.num_updates += 1
         return True
+
+    def ready_to_update(self) -> bool:
+        """Past the warm-up, with a batch in the buffer."""
+        return self.steps >= self.update_after and len(self.buffer) >= self.batch_size
+
+    @property
+    def update_period(self) -> int:
+        """Updates after which the update's steps repeat (TD3's delayed step: every d-th):
+        each residue of :attr:`num_updates` is one way through :meth:`update` (one captured
+        graph)."""
+        return 1
 
     def noise_like(self, x: torch.Tensor) -> torch.Tensor:
         """eps ~ N(0, I) shaped like ``x`` ``(K, ...)``, row k from member k's update-noise

@@ -41,15 +41,16 @@ class NonFiniteGuard:
     def record(self, bad: torch.Tensor, delayed_bad: torch.Tensor | None = None) -> None:
         """Count one update: ``bad`` where its steps were skipped; ``delayed_bad`` where it ran
         the delayed step, whether that step was skipped (it counts until the step runs again)."""
+        # in place: a captured update's graphs all read and write these same counters
         if delayed_bad is not None:
-            self.delayed_bad = delayed_bad
+            self.delayed_bad.copy_(delayed_bad)
         bad = torch.maximum(bad, self.delayed_bad)
         self.skipped += bad
-        self.in_a_row = (self.in_a_row + bad) * bad  # reset by any good update
+        self.in_a_row.add_(bad).mul_(bad)  # (in_a_row + bad) * bad: reset by any good update
 
     def metrics(self) -> dict[str, torch.Tensor]:
-        """The counters themselves, not copies: read when logged, they are current."""
-        return {SKIPPED: self.skipped, SKIPPED_IN_A_ROW: self.in_a_row}
+        """This update's counts (copies: the counters themselves change in place)."""
+        return {SKIPPED: self.skipped.clone(), SKIPPED_IN_A_ROW: self.in_a_row.clone()}
 
     _COUNTERS = ("skipped", "in_a_row", "delayed_bad")
 

@@ -37,6 +37,10 @@ COMPILE_DOC = (
     "torch.compile the loss computations (on CUDA with CUDA graphs, for\n"
     "launch-bound small updates); on CPU no measurable gain (make bench)"
 )
+CAPTURE_DOC = (
+    "on CUDA, the whole update (sampling, losses, backward, optimizer steps,\n"
+    "guard, targets) as CUDA graphs, replayed; not yet measured on a GPU"
+)
 
 
 def warmup(default: int, source: str = ""):
@@ -68,6 +72,7 @@ class Replay(Hyperparameters):
     gamma: float = hp(0.99, DISCOUNT, "discount")
     buffer_size: int = hp(1_000_000, POSITIVE_INT, "replay buffer capacity (transitions)")
     compile: bool = hp(False, BOOL, COMPILE_DOC)
+    capture: bool = hp(False, BOOL, CAPTURE_DOC)
 
 
 @dataclass
@@ -457,6 +462,7 @@ class TD3BCHyperparameters(TD3Ideas):
         "normalize states with the dataset's mean and std (+ 1e-3), in training and acting",
     )
     compile: bool = hp(False, BOOL, COMPILE_DOC)
+    capture: bool = hp(False, BOOL, CAPTURE_DOC)
 
 
 #: Each algorithm's declaration, by its name (``algo=<name>``).

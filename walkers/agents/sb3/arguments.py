@@ -38,6 +38,7 @@ MAPPING: dict[str, dict[str, str]] = {
         "exploration_noise": "action_noise=NormalActionNoise(0, sigma)",
         "buffer_size": "buffer_size",
         "compile": "- (false only)",
+        "capture": "- (false only)",
     },
     "ddpg": {
         "lr": "learning_rate",
@@ -54,6 +55,7 @@ MAPPING: dict[str, dict[str, str]] = {
         "noise_type": "action_noise: NormalActionNoise | OrnsteinUhlenbeckActionNoise (theta .15)",
         "buffer_size": "buffer_size",
         "compile": "- (false only)",
+        "capture": "- (false only)",
     },
     "sac": {
         "lr": "learning_rate (actor, critics and temperature)",
@@ -67,6 +69,7 @@ MAPPING: dict[str, dict[str, str]] = {
         "target_entropy": "target_entropy (null: 'auto', -|A|)",
         "buffer_size": "buffer_size",
         "compile": "- (false only)",
+        "capture": "- (false only)",
     },
     "crossq": {
         "lr": "learning_rate (actor, critics and temperature)",
@@ -84,6 +87,7 @@ MAPPING: dict[str, dict[str, str]] = {
         "target_entropy": "target_entropy (null: 'auto', -|A|)",
         "buffer_size": "buffer_size",
         "compile": "- (false only)",
+        "capture": "- (false only)",
     },
     "ppo": {
         "lr": "learning_rate",
@@ -148,8 +152,9 @@ def sb3_arguments(algo: str, hp: Mapping) -> dict:
             f"algo.{unknown[0]} has no Stable-Baselines3 counterpart for {algo} "
             f"(impl=sb3 maps {', '.join(MAPPING[algo])})"
         )
-    if hp.get("compile"):
-        raise _refuse(algo, "compile", hp["compile"], "false (SB3 runs eagerly)")
+    for key in ("compile", "capture"):
+        if hp.get(key):
+            raise _refuse(algo, key, hp[key], "false (SB3 runs eagerly)")
     build = {"ppo": _ppo, "sac": _sac, "crossq": _crossq}
     return build.get(algo, _deterministic_actor_critic)(algo, hp)
 

@@ -20,6 +20,7 @@ from walkers import PROJECT_ROOT
 from walkers.agents.base import Transition
 from walkers.agents.declarations.hyperparameters import tiny_overrides
 from walkers.agents.declarations.schemas import SCHEMAS
+from walkers.agents.factory import defaults_for
 from walkers.data.datasets import OfflineData
 from walkers.data.episodes import Episode
 
@@ -260,3 +261,31 @@ def feed_members(
         )
         agent.update()
         obs = nxt
+
+
+def filled_agent(cls, population: int = 1, device: str = "cpu", **settings):
+    """A small off-policy agent of ``cls`` (5-d observations, 2-d actions, seed 3) holding the
+    same 200 made-up transitions per member, not yet updated: two built alike update alike, so
+    a variant (``settings``: compile, capture, ...) can be held to the eager one."""
+    small = {"hidden_sizes": [32, 32], "batch_size": 32, "learning_starts": 0, "buffer_size": 500}
+    obs_dim, act_dim = 5, 2
+    agent = cls(
+        obs_dim,
+        [-2.0] * act_dim,
+        [2.0] * act_dim,
+        population=population,
+        seed=3,
+        device=device,
+        **defaults_for(cls, **(small | settings)),
+    )
+    rng = np.random.default_rng(0)
+    for t in range(200):
+        obs, nxt = rng.normal(size=(2, population, obs_dim)).astype(np.float32)
+        action = rng.uniform(-2, 2, (population, act_dim)).astype(np.float32)
+        agent.observe_population(
+            [
+                Transition(obs[i], action[i], float(rng.normal()), nxt[i], t % 50 == 49, False)
+                for i in range(population)
+            ]
+        )
+    return agent

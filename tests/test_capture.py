@@ -10,46 +10,24 @@ import numpy as np
 import pytest
 import torch
 
-from tests.conftest import compose_cfg
+from tests.conftest import compose_cfg, filled_agent
 from walkers.agents.base import Transition
 from walkers.agents.common.capture import WARMUP_UPDATES, CapturedUpdate
 from walkers.agents.crossq import CrossQ
 from walkers.agents.ddpg import DDPG
-from walkers.agents.factory import defaults_for
 from walkers.agents.sac import SAC
 from walkers.agents.td3 import TD3
 from walkers.errors import ConfigError
 from walkers.training.validate import validate
 
-OBS, ACT = 5, 2
+OBS, ACT = 5, 2  # filled_agent's shapes
 CUDA = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA (make test-gpu)")
 
 
 def filled(cls, device: str, capture: bool, population: int = 1):
     """A small agent with the same seed and the same 200 stored transitions, nothing updated."""
-    small = {"hidden_sizes": [32, 32], "batch_size": 32, "learning_starts": 0, "buffer_size": 500}
-    if cls is CrossQ:
-        small |= {"critic_hidden_sizes": [64, 64], "renorm_warmup_steps": 10}
-    agent = cls(
-        OBS,
-        [-2.0] * ACT,
-        [2.0] * ACT,
-        population=population,
-        seed=3,
-        device=device,
-        **defaults_for(cls, capture=capture, **small),
-    )
-    rng = np.random.default_rng(0)
-    for t in range(200):
-        obs, nxt = rng.normal(size=(2, population, OBS)).astype(np.float32)
-        action = rng.uniform(-2, 2, (population, ACT)).astype(np.float32)
-        agent.observe_population(
-            [
-                Transition(obs[i], action[i], float(rng.normal()), nxt[i], t % 50 == 49, False)
-                for i in range(population)
-            ]
-        )
-    return agent
+    wide = {"critic_hidden_sizes": [64, 64], "renorm_warmup_steps": 10} if cls is CrossQ else {}
+    return filled_agent(cls, population, device, capture=capture, **wide)
 
 
 def test_capture_on_a_cpu_runs_the_eager_update_and_says_so(caplog):

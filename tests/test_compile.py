@@ -6,45 +6,14 @@ import numpy as np
 import pytest
 import torch
 
-from tests.conftest import TINY, all_runs, compose_cfg
-from walkers.agents.base import Transition
-from walkers.agents.factory import defaults_for
+from tests.conftest import TINY, all_runs, compose_cfg, filled_agent
 from walkers.agents.td3 import TD3
 from walkers.train import train
-
-OBS, ACT = 5, 2
 
 
 def filled_td3(compile: bool, population: int) -> TD3:
     """A small TD3 (or population) with the same seed and the same 200 stored transitions."""
-    agent = TD3(
-        OBS,
-        [-2.0] * ACT,
-        [2.0] * ACT,
-        population=population,
-        seed=3,
-        **defaults_for(
-            TD3,
-            hidden_sizes=[32, 32],
-            batch_size=32,
-            learning_starts=0,
-            buffer_size=500,
-            compile=compile,
-        ),
-    )
-    rng = np.random.default_rng(0)
-    for t in range(200):
-        obs, nxt = rng.normal(size=(2, population, OBS)).astype(np.float32)
-        action = rng.uniform(-2, 2, (population, ACT)).astype(np.float32)
-        transitions = [
-            Transition(obs[i], action[i], float(rng.normal()), nxt[i], t % 50 == 49, False)
-            for i in range(population)
-        ]
-        if population == 1:
-            agent.observe(transitions[0])
-        else:
-            agent.observe_population(transitions)
-    return agent
+    return filled_agent(TD3, population, compile=compile)
 
 
 @pytest.mark.parametrize("population", [1, 2])

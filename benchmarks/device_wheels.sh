@@ -14,12 +14,21 @@ python3 -m pip download -q -d "$tmp" --only-binary=:all: --python-version "$PYV"
   --implementation cp "${platforms[@]}" \
   gymnasium==1.4.0 mujoco==4.0.0 hydra-core==1.4.0rc3 hydra-joblib-launcher==1.4.0rc3 \
   omegaconf==2.4.1rc1 minari==0.5.4 mlflow==3.17.2
-# on the image already (KINDS.md's list), or not needed there
-skip='^(torch|numpy|pandas|scipy|pyarrow|matplotlib|pillow|packaging|pyyaml|tqdm|typing.extensions|requests|urllib3|idna|certifi|charset.normalizer|jinja2|markupsafe|click|cloudpickle|absl.py|etils|fsspec|filelock|h5py|joblib|protobuf|psutil|six|python.dateutil|werkzeug|markdown|importlib.resources|zipp|attrs|rich|pygments|markdown.it.py|mdurl|sympy|networkx|mpmath|anyio|h11|httpx|httpcore|sniffio|contourpy|cycler|fonttools|kiwisolver|pyparsing|tzdata|pytz|threadpoolctl|scikit.learn|numba|llvmlite|narwhals|grpcio|cuda.*|nvidia.*|triton|setuptools|pip|wheel|mlflow|mujoco.studio|cryptography|cffi|pycparser|docker|gunicorn|skops|huey)-'
+# on the image already (KINDS.md's list), or not needed there: distribution names, matched whole
+skip=" torch numpy pandas scipy pyarrow matplotlib pillow packaging pyyaml tqdm typing-extensions
+  requests urllib3 idna certifi charset-normalizer jinja2 markupsafe click cloudpickle absl-py etils
+  fsspec filelock h5py joblib protobuf psutil six python-dateutil werkzeug markdown zipp attrs rich
+  pygments markdown-it-py mdurl sympy networkx mpmath anyio h11 httpx httpcore sniffio contourpy
+  cycler fonttools kiwisolver pyparsing tzdata pytz threadpoolctl scikit-learn numba llvmlite
+  narwhals grpcio triton setuptools pip wheel mlflow mujoco-studio cryptography cffi pycparser
+  docker gunicorn skops huey"
+skip=" $(echo $skip) "  # one space between names, and around them
 rm -rf .whl && mkdir .whl
 for f in "$tmp"/*.whl; do
-  name=$(basename "$f" | tr 'A-Z_' 'a-z-')
-  [[ "$name" =~ $skip ]] || cp "$f" .whl/
+  dist=$(basename "$f" | cut -d- -f1 | tr 'A-Z_.' 'a-z--')
+  case "$dist" in cuda-* | nvidia-*) continue ;; esac
+  [[ "$skip" == *" $dist "* ]] && continue
+  cp "$f" .whl/
 done
 rm -rf "$tmp"
 du -sh .whl

@@ -17,4 +17,4 @@ mkdir -p .venv/bin
 printf '#!/bin/sh\nexec %s "$@"\n' "$(command -v python3)" > .venv/bin/python.new
 chmod +x .venv/bin/python.new && mv .venv/bin/python.new .venv/bin/python
 touch .venv/.installed
-.venv/bin/python -c "import torch, gymnasium, mujoco, mlflow, hydra, minari; print('device_venv:', torch.__version__, torch.cuda.get_device_name() if torch.cuda.is_available() else 'no CUDA')"
+.venv/bin/python -c "import torch, gymnasium, mujoco, mlflow, hydra, minari; print('device_venv:', torch.__version__, torch.cuda.get_device_name())"

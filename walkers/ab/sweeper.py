@@ -186,15 +186,15 @@ class StudySweeper(Sweeper):
     def _launch(self, client, experiment, spec, base, launches, parent_run_id: str) -> None:
         keys = [[spec.job_key(arm, env, seed) for seed in seeds] for arm, env, seeds in launches]
         batch = [
-            base + list(spec.arm(arm).overrides) + self._job_overrides(spec, arm, env, seeds)
+            base
+            + list(spec.arm(arm).overrides)
+            + self._job_overrides(spec, arm, env, seeds)
+            + [f"trial.parent_run_id={parent_run_id}"]
             for arm, env, seeds in launches
         ]
         every_key = [key for group in keys for key in group]
         try:
-            returns = self.launcher.launch(
-                [[*job, f"trial.parent_run_id={parent_run_id}"] for job in batch],
-                initial_job_idx=self.job_idx,
-            )
+            returns = self.launcher.launch(batch, initial_job_idx=self.job_idx)
         except SystemExit as e:  # a job in this process (basic launcher) exits: 130 interrupted
             interrupted = e.code == 130
             end_jobs_runs(client, experiment, every_key, KeyboardInterrupt() if interrupted else e)

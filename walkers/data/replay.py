@@ -64,25 +64,29 @@ class ReplayBuffer:
         self.holds_dataset = False  # a fixed dataset's transitions (hold_dataset), never refilled
         self.sampler = RandomStreams.of_seeds(seeds, "replay", self.device)
         self._rows = torch.arange(k, device=self.device)[:, None]
+        # what add() writes a step into, in DATA_FIELDS' order: numpy views of the columns on the
+        # CPU (they share the tensors' memory, which loading and hold_dataset write in place)
+        columns = [getattr(self, name) for name in DATA_FIELDS]
+        on_cpu = self.device.type == "cpu"
+        self._host_columns = [column.numpy() if on_cpu else column for column in columns]
 
     def __len__(self) -> int:
         return self.size
 
     def add(self, obs, action, reward, next_obs, terminated, episode_end=False) -> None:
-        """One transition per member: ``(K, ...)`` arrays (or one member's, for K = 1)."""
+        """One transition per member: ``(K, ...)`` arrays or lists (or one member's, for K = 1).
+        A step of the training loop: on the CPU it writes through numpy views of the columns
+        (a few microseconds), elsewhere it copies each field to the device."""
         i = self.pos
-        self.obs[:, i] = torch.as_tensor(np.asarray(obs, dtype=np.float32)).view(self.members, -1)
-        self.action[:, i] = torch.as_tensor(np.asarray(action, dtype=np.float32)).view(
-            self.members, -1
-        )
-        self.next_obs[:, i] = torch.as_tensor(np.asarray(next_obs, dtype=np.float32)).view(
-            self.members, -1
-        )
-        self.reward[:, i] = torch.as_tensor(np.asarray(reward, dtype=np.float32))
-        self.terminated[:, i] = torch.as_tensor(np.asarray(terminated, dtype=np.float32))
-        self.episode_end[:, i] = torch.as_tensor(np.asarray(episode_end, dtype=bool))
+        values = (obs, action, reward, next_obs, terminated, episode_end)
+        for column, value in zip(self._host_columns, values, strict=True):
+            if isinstance(column, np.ndarray):
+                column[:, i] = value
+            else:
+                column[:, i] = torch.as_tensor(np.asarray(value), dtype=column.dtype)
         self.pos = (i + 1) % self.capacity
-        self._set_size(min(self.size + 1, self.capacity))
+        if self.size < self.capacity:
+            self._set_size(self.size + 1)
 
     def _set_size(self, size: int) -> None:
         """The size, and its copy on the device that :meth:`sample` reads (no host value is

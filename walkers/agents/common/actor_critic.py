@@ -244,7 +244,7 @@ class ActorCritic(Agent):
 
     def observe_population(self, transitions: Sequence[Transition]) -> None:
         fields = ("obs", "action", "reward", "next_obs", "terminated", "episode_over")
-        self.buffer.add(*(np.stack([getattr(t, f) for t in transitions]) for f in fields))
+        self.buffer.add(*([getattr(t, f) for t in transitions] for f in fields))
         for member, t in zip(self.members, transitions, strict=True):
             if t.episode_over:
                 member.noise.reset()

@@ -264,7 +264,8 @@ def crossq_population(k: int) -> PopulationLoop:
 
 
 def contenders(only: str | None = None, population: tuple[int, ...] = (2, 4)) -> dict:
-    common = {"lr": 3e-4, "batch_size": BATCH, "learning_starts": WARMUP}
+    # the eager rows are eager on a GPU too (capture=auto would capture them there)
+    common = {"lr": 3e-4, "batch_size": BATCH, "learning_starts": WARMUP, "capture": False}
     loops = {
         "walkers TD3": lambda: WalkersLoop(TD3, hidden_sizes=[HIDDEN, HIDDEN], **common),
         "walkers TD3 compile": lambda: WalkersLoop(
@@ -294,7 +295,7 @@ def contenders(only: str | None = None, population: tuple[int, ...] = (2, 4)) ->
         }
     else:  # on a GPU the paper's CrossQ width, K seeds at a time; whole updates captured
         loops |= {f"walkers CrossQ 2048 K={k}": partial(crossq_population, k) for k in population}
-        captured = {"capture": True, "hidden_sizes": [HIDDEN, HIDDEN], **common}
+        captured = {**common, "capture": True, "hidden_sizes": [HIDDEN, HIDDEN]}
         loops |= {
             "walkers TD3 capture": lambda: WalkersLoop(TD3, **captured),
             "walkers SAC capture": lambda: WalkersLoop(SAC, **captured),

@@ -1,5 +1,6 @@
-"""``algo.capture=true``: the whole off-policy update as CUDA graphs computes the eager update,
-update after update; on a CPU the flag changes nothing. The CUDA tests run with `make test-gpu`
+"""``algo.capture``: the whole off-policy update as CUDA graphs computes the eager update, update
+after update; ``auto`` (the default) captures on CUDA unless ``compile`` is on, and on a CPU the
+flag changes nothing. The CUDA tests run with `make test-gpu`
 on a GPU machine and skip elsewhere."""
 
 from __future__ import annotations
@@ -24,10 +25,10 @@ OBS, ACT = 5, 2  # filled_agent's shapes
 CUDA = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA (make test-gpu)")
 
 
-def filled(cls, device: str, capture: bool, population: int = 1):
+def filled(cls, device: str, capture: bool | str, population: int = 1, **settings):
     """A small agent with the same seed and the same 200 stored transitions, nothing updated."""
     wide = {"critic_hidden_sizes": [64, 64], "renorm_warmup_steps": 10} if cls is CrossQ else {}
-    return filled_agent(cls, population, device, capture=capture, **wide)
+    return filled_agent(cls, population, device, capture=capture, **wide, **settings)
 
 
 def test_capture_on_a_cpu_runs_the_eager_update_and_says_so(caplog):
@@ -39,6 +40,27 @@ def test_capture_on_a_cpu_runs_the_eager_update_and_says_so(caplog):
     for _ in range(4):
         a, b = flagged.update(), plain.update()
         assert all(torch.equal(a[key], b[key]) for key in a)
+
+
+@pytest.mark.parametrize(
+    "device, compile, captured",
+    [
+        ("cpu", False, False),
+        pytest.param("cuda", False, True, marks=CUDA),
+        pytest.param("cuda", True, False, marks=CUDA),
+    ],
+)
+def test_capture_auto_captures_on_cuda_unless_compiled(caplog, device, compile, captured):
+    with caplog.at_level(logging.WARNING, logger="walkers"):
+        agent = filled(TD3, device, capture="auto", compile=compile)
+    assert isinstance(agent.update, CapturedUpdate) == captured
+    assert "needs CUDA" not in caplog.text  # auto asks for nothing the device lacks
+
+
+def test_a_bad_capture_value_names_the_allowed_ones():
+    cfg = compose_cfg(["algo=td3", "env=pendulum", "algo.capture=yes"])
+    with pytest.raises(ConfigError, match="algo.capture='yes'.*auto, true or false"):
+        validate(cfg)
 
 
 def test_capture_and_compile_together_are_refused_in_one_line():

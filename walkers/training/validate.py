@@ -92,7 +92,7 @@ def _check_implementation(cfg: DictConfig) -> None:
 def _check_capture(cfg: DictConfig) -> None:
     """``algo.capture`` holds the whole update in CUDA graphs; ``algo.compile`` compiles the
     losses alone: one or the other."""
-    if OmegaConf.select(cfg, "algo.capture") and OmegaConf.select(cfg, "algo.compile"):
+    if OmegaConf.select(cfg, "algo.capture") is True and OmegaConf.select(cfg, "algo.compile"):
         raise ConfigError(
             "algo.capture=true is not allowed with algo.compile=true: capture holds the whole "
             "update as CUDA graphs, compile only its losses; choose one"

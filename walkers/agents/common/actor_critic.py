@@ -83,7 +83,7 @@ class ActorCritic(Agent):
         adam_betas: Sequence[float] | None = None,  # None: Adam's own (0.9, 0.999)
         population: int = 1,
         compile: bool,
-        capture: bool,
+        capture: bool | str,
         device: str = "cpu",
         seed: int = 0,
     ):
@@ -104,9 +104,11 @@ class ActorCritic(Agent):
         self.actor_lr, self.critic_lr = actor_lr or lr, critic_lr or lr
         self.adam_betas = (0.9, 0.999) if adam_betas is None else tuple(adam_betas)
         self.buffer_size, self.compile = int(buffer_size), compile
-        # the whole update as CUDA graphs: on CUDA only (the CPU keeps the eager update)
-        self.capture = capture and self.device.type == "cuda"
-        if capture and not self.capture:
+        # the whole update as CUDA graphs: on CUDA only (the CPU keeps the eager update); "auto"
+        # captures where it can, leaving the update to torch.compile when that is asked for
+        wanted = capture is True or (capture == "auto" and not compile)
+        self.capture = wanted and self.device.type == "cuda"
+        if capture is True and not self.capture:
             log.warning("algo.capture=true needs CUDA: on %s the update runs eagerly", self.device)
 
         self.member_seeds = list(range(seed, seed + self.population))

@@ -38,9 +38,12 @@ COMPILE_DOC = (
     "launch-bound small updates); on CPU no measurable gain (make bench)"
 )
 CAPTURE_DOC = (
-    "on CUDA, the whole update (sampling, losses, backward, optimizer steps,\n"
-    "guard, targets) as CUDA graphs, replayed; not yet measured on a GPU"
+    "the whole update (sampling, losses, backward, optimizer steps, guard,\n"
+    "targets) as CUDA graphs, replayed: auto = on CUDA unless compile is on;\n"
+    "the same update as the eager one (H200: TD3's update 0.46 ms against 6.8)"
 )
+#: ``capture``: ``auto`` turns it on where it runs (CUDA) and compile is off.
+CAPTURE = Allowed(lambda v: isinstance(v, bool) or v == "auto", "auto, true or false")
 
 
 def warmup(default: int, source: str = ""):
@@ -72,7 +75,7 @@ class Replay(Hyperparameters):
     gamma: float = hp(0.99, DISCOUNT, "discount")
     buffer_size: int = hp(1_000_000, POSITIVE_INT, "replay buffer capacity (transitions)")
     compile: bool = hp(False, BOOL, COMPILE_DOC)
-    capture: bool = hp(False, BOOL, CAPTURE_DOC)
+    capture: bool | str = hp("auto", CAPTURE, CAPTURE_DOC)
 
 
 @dataclass
@@ -462,7 +465,7 @@ class TD3BCHyperparameters(TD3Ideas):
         "normalize states with the dataset's mean and std (+ 1e-3), in training and acting",
     )
     compile: bool = hp(False, BOOL, COMPILE_DOC)
-    capture: bool = hp(False, BOOL, CAPTURE_DOC)
+    capture: bool | str = hp("auto", CAPTURE, CAPTURE_DOC)
 
 
 #: Each algorithm's declaration, by its name (``algo=<name>``).

@@ -38,7 +38,7 @@ MAPPING: dict[str, dict[str, str]] = {
         "exploration_noise": "action_noise=NormalActionNoise(0, sigma)",
         "buffer_size": "buffer_size",
         "compile": "- (false only)",
-        "capture": "- (false only)",
+        "capture": "- (false or auto: SB3 runs eagerly)",
     },
     "ddpg": {
         "lr": "learning_rate",
@@ -55,7 +55,7 @@ MAPPING: dict[str, dict[str, str]] = {
         "noise_type": "action_noise: NormalActionNoise | OrnsteinUhlenbeckActionNoise (theta .15)",
         "buffer_size": "buffer_size",
         "compile": "- (false only)",
-        "capture": "- (false only)",
+        "capture": "- (false or auto: SB3 runs eagerly)",
     },
     "sac": {
         "lr": "learning_rate (actor, critics and temperature)",
@@ -69,7 +69,7 @@ MAPPING: dict[str, dict[str, str]] = {
         "target_entropy": "target_entropy (null: 'auto', -|A|)",
         "buffer_size": "buffer_size",
         "compile": "- (false only)",
-        "capture": "- (false only)",
+        "capture": "- (false or auto: SB3 runs eagerly)",
     },
     "crossq": {
         "lr": "learning_rate (actor, critics and temperature)",
@@ -87,7 +87,7 @@ MAPPING: dict[str, dict[str, str]] = {
         "target_entropy": "target_entropy (null: 'auto', -|A|)",
         "buffer_size": "buffer_size",
         "compile": "- (false only)",
-        "capture": "- (false only)",
+        "capture": "- (false or auto: SB3 runs eagerly)",
     },
     "ppo": {
         "lr": "learning_rate",
@@ -153,8 +153,9 @@ def sb3_arguments(algo: str, hp: Mapping) -> dict:
             f"(impl=sb3 maps {', '.join(MAPPING[algo])})"
         )
     for key in ("compile", "capture"):
-        if hp.get(key):
-            raise _refuse(algo, key, hp[key], "false (SB3 runs eagerly)")
+        if hp.get(key) is True:
+            allowed = "false" if key == "compile" else "false or auto"
+            raise _refuse(algo, key, hp[key], f"{allowed} (SB3 runs eagerly)")
     build = {"ppo": _ppo, "sac": _sac, "crossq": _crossq}
     return build.get(algo, _deterministic_actor_critic)(algo, hp)
 

@@ -1,4 +1,4 @@
-"""Off-policy actor-critic with experience replay: what TD3, DDPG, SAC and CrossQ share.
+"""Off-policy actor-critic with experience replay: what TD3, DDPG, SAC, CrossQ and TD7 share.
 
 Each algorithm owns its update, written in its paper's order in its own module:
 
@@ -6,7 +6,10 @@ Each algorithm owns its update, written in its paper's order in its own module:
   is TD3 with its three ideas off;
 - :mod:`walkers.agents.sac`: SAC v2 (Haarnoja et al. 2018, Algorithm 1);
 - :mod:`walkers.agents.crossq`: CrossQ (Bhatt et al. 2024): SAC without target networks, with
-  Batch Renormalization in wide critics and one joint forward pass.
+  Batch Renormalization in wide critics and one joint forward pass;
+- :mod:`walkers.agents.td7`: TD7 (Fujimoto et al. 2023): TD3 with SALE embeddings, LAP
+  prioritised replay (its own :attr:`~ActorCritic.replay_class`), hard target updates and value
+  clipping.
 
 This core holds only what they share, none of it particular to one algorithm: the actor and
 critic ensembles and their Adam optimizers, the replay buffers and the uniform random warm-up,
@@ -62,6 +65,12 @@ class ActorCritic(Agent):
     trains_populations = True  # population=K: K seeds, one batched matmul a layer
     #: the methods ``compile=True`` runs through torch.compile (the losses, forward and backward)
     compiled_losses: tuple[str, ...] = ("critic_loss", "actor_loss")
+    #: the method ``capture`` holds as CUDA graphs: the whole :meth:`update`, or the part of it
+    #: whose ways through repeat with :attr:`update_period` (TD7's hard target copies every 250
+    #: updates stay outside its graphs)
+    captured_step = "update"
+    #: the replay buffer's class (TD7's prioritises its transitions)
+    replay_class: type[ReplayBuffer] = ReplayBuffer
 
     def __init__(
         self,
@@ -203,7 +212,7 @@ class ActorCritic(Agent):
         that stream (``exploration_noise(rng)``). With them come the parts the members hold as
         one: the replay buffer (:attr:`buffer`, each member's transitions and sampling stream) and
         the update's noise streams (:meth:`noise_like`), keyed by the members' seeds."""
-        self.buffer = ReplayBuffer(
+        self.buffer = self.replay_class(
             self.buffer_size, self.obs_dim, self.act_dim, self.device, self.member_seeds
         )
         self.update_noise = RandomStreams.of_seeds(self.member_seeds, "update_noise", self.device)
@@ -221,7 +230,8 @@ class ActorCritic(Agent):
         where a small update is launch-bound. The optimizer steps stay eager there: fused Adam
         is one kernel already and keeps the NaN guard's step skip."""
         if self.capture:
-            self.update = CapturedUpdate(self, self.update)
+            step = self.captured_step
+            setattr(self, step, CapturedUpdate(self, getattr(self, step)))
         if not self.compile:
             return
         mode = "reduce-overhead" if self.device.type == "cuda" else None

@@ -189,7 +189,7 @@ def test_the_checks_follow_the_class_built_not_the_name():
 
 
 def test_the_train_menu_lists_every_declared_algorithm():
-    """conf/train.yaml's defaults list names the algorithms (a hand-written comment): all."""
+    """conf/train.yaml's defaults list names the algorithms (written by `make menus`): all."""
     line = next(
         x for x in (PROJECT_ROOT / "conf/train.yaml").read_text().splitlines() if "- algo:" in x
     )

@@ -167,9 +167,19 @@ HEADING = (
 )
 
 
+def algorithms_comment() -> str:
+    """The comment of the defaults list's ``algo`` line: every declared algorithm."""
+    offline = ", ".join(OFFLINE)
+    return f"# {' | '.join(SCHEMAS)} ({offline}: offline, need dataset=)"
+
+
 def train_yaml(text: str) -> str:
-    """``text`` (``conf/train.yaml``) with the block after :data:`HEADING` written anew."""
-    lines = text.split("\n")
+    """``text`` (``conf/train.yaml``) with the block after :data:`HEADING` written anew, and the
+    defaults list's ``algo`` line commented with every declared algorithm."""
+    lines = [
+        line.split("#")[0] + algorithms_comment() if line.startswith("  - algo:") else line
+        for line in text.split("\n")
+    ]
     if HEADING not in lines:
         raise ValueError(f"conf/train.yaml has no line {HEADING!r} to write the settings after")
     start = lines.index(HEADING) + 1

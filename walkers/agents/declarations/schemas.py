@@ -468,6 +468,39 @@ class TD3BCHyperparameters(TD3Ideas):
     capture: bool | str = hp("auto", CAPTURE, CAPTURE_DOC)
 
 
+@dataclass
+class TD7Hyperparameters(TD3Ideas, Replay):
+    """TD7 (Fujimoto et al. 2023, "For SALE: State-Action Representation Learning for Deep
+    Reinforcement Learning"): TD3 with SALE embeddings, LAP prioritised replay, hard target
+    updates and value clipping; without the paper's policy checkpoints. Defaults are the
+    authors' code's (github.com/sfujim/TD7)."""
+
+    AGENT = "walkers.agents.td7.TD7"
+    NAME = "td7"
+    TINY = Replay.TINY | {"zs_dim": 16, "encoder_hidden_sizes": [32, 32], "target_update_rate": 20}
+    lr: float = hp(3.0e-4, POSITIVE, "Adam learning rate: actor, critics and encoder")
+    policy_delay: int = hp(2, POSITIVE_INT, "critic updates per actor update")
+    exploration_noise: float = hp(
+        0.1,
+        NON_NEGATIVE,
+        "Gaussian exploration noise std (fraction of the action range half-width)",
+    )
+    target_update_rate: int = hp(
+        250,
+        POSITIVE_INT,
+        "updates between hard copies of the targets (actor, critics, both fixed\n"
+        "encoders), LAP's largest priority and the value clipping's bounds",
+    )
+    lap_alpha: float = hp(0.4, NON_NEGATIVE, "LAP: priority = max(|TD error|, min_priority)^alpha")
+    min_priority: float = hp(
+        1.0, POSITIVE, "LAP: the least priority, and where the Huber loss turns linear"
+    )
+    zs_dim: int = hp(256, POSITIVE_INT, "SALE: the size of the embeddings zs and zsa")
+    encoder_hidden_sizes: list[int] = hp(
+        [256, 256], LAYERS, "SALE: hidden layers of the encoders f(s) and g(zs, a) (ELU)"
+    )
+
+
 #: Each algorithm's declaration, by its name (``algo=<name>``).
 SCHEMAS: dict[str, type[Hyperparameters]] = {
     schema.NAME: schema
@@ -476,6 +509,7 @@ SCHEMAS: dict[str, type[Hyperparameters]] = {
         DDPGHyperparameters,
         SACHyperparameters,
         CrossQHyperparameters,
+        TD7Hyperparameters,
         PPOHyperparameters,
         ReinforceHyperparameters,
         DecisionTransformerHyperparameters,

@@ -46,6 +46,7 @@ from walkers.agents.ppo import PPO
 from walkers.agents.reinforce import Reinforce
 from walkers.agents.sac import SAC
 from walkers.agents.td3 import TD3
+from walkers.agents.td7 import TD7
 from walkers.data.replay import DATA_FIELDS, ReplayBuffer
 from walkers.training.envs import env_spaces, make_vector_env, step_vector_env
 
@@ -273,6 +274,7 @@ def contenders(only: str | None = None, population: tuple[int, ...] = (2, 4)) ->
         ),
         "walkers DDPG": lambda: WalkersLoop(DDPG, hidden_sizes=[HIDDEN, HIDDEN], **common),
         "walkers SAC": lambda: WalkersLoop(SAC, hidden_sizes=[HIDDEN, HIDDEN], **common),
+        "walkers TD7": lambda: WalkersLoop(TD7, hidden_sizes=[HIDDEN, HIDDEN], **common),
         **{f"walkers CrossQ {width}": partial(walkers_crossq, width) for width in CROSSQ_WIDTHS},
         "walkers REINFORCE": lambda: WalkersLoop(Reinforce, hidden_sizes=[HIDDEN, HIDDEN]),
         "walkers PPO": walkers_ppo,
@@ -299,6 +301,7 @@ def contenders(only: str | None = None, population: tuple[int, ...] = (2, 4)) ->
         loops |= {
             "walkers TD3 capture": lambda: WalkersLoop(TD3, **captured),
             "walkers SAC capture": lambda: WalkersLoop(SAC, **captured),
+            "walkers TD7 capture": lambda: WalkersLoop(TD7, **captured),
             **{
                 f"walkers TD3 capture K={k}": partial(PopulationLoop, k, **captured)
                 for k in population

@@ -32,7 +32,7 @@ part() {  # part NAME SECONDS COMMAND...
 py=.venv/bin/python
 part capture 90 $py -m pytest -q -p no:cacheprovider tests/test_capture.py tests/test_random_streams.py
 part update 75 $py benchmarks/bench_update.py --device cuda --reps 3 --phases
-part throughput 130 $py benchmarks/bench_throughput.py --device cuda --only "TD3,SAC,PPO" \
+part throughput 130 $py benchmarks/bench_throughput.py --device cuda --only "TD3,SAC,TD7,PPO" \
   --population 1,5,16 --reps 2 --steps 200
 part dt 25 $py benchmarks/bench_dt.py --devices cuda --reps 2 --steps 10
 part envs 30 $py benchmarks/bench_envs.py --envs 1,4,8,16 --steps 2000 --reps 2

@@ -18,6 +18,7 @@ from walkers.agents.crossq import CrossQ
 from walkers.agents.ddpg import DDPG
 from walkers.agents.sac import SAC
 from walkers.agents.td3 import TD3
+from walkers.agents.td7 import TD7
 from walkers.errors import ConfigError
 from walkers.training.validate import validate
 
@@ -28,6 +29,8 @@ CUDA = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA (mak
 def filled(cls, device: str, capture: bool | str, population: int = 1, **settings):
     """A small agent with the same seed and the same 200 stored transitions, nothing updated."""
     wide = {"critic_hidden_sizes": [64, 64], "renorm_warmup_steps": 10} if cls is CrossQ else {}
+    if cls is TD7:  # small, with hard target copies among the first updates
+        wide = {"zs_dim": 16, "encoder_hidden_sizes": [32, 32], "target_update_rate": 4}
     return filled_agent(cls, population, device, capture=capture, **wide, **settings)
 
 
@@ -70,19 +73,20 @@ def test_capture_and_compile_together_are_refused_in_one_line():
 
 
 @CUDA
-@pytest.mark.parametrize("cls", [TD3, DDPG, SAC, CrossQ])
+@pytest.mark.parametrize("cls", [TD3, DDPG, SAC, CrossQ, TD7])
 @pytest.mark.parametrize("population", [1, 3])
 def test_captured_updates_follow_the_eager_ones(cls, population):
     eager = filled(cls, "cuda", capture=False, population=population)
     captured = filled(cls, "cuda", capture=True, population=population)
-    assert isinstance(captured.update, CapturedUpdate)
+    step = getattr(captured, captured.captured_step)  # the update, or (TD7) its graphed part
+    assert isinstance(step, CapturedUpdate)
     for n in range(WARMUP_UPDATES + 3 * max(2, captured.update_period)):
         expected, got = eager.update(), captured.update()
         assert set(got) == set(expected), n
         for key in expected:
             torch.testing.assert_close(got[key], expected[key], rtol=1e-4, atol=1e-5)
     assert captured.num_updates == eager.num_updates
-    assert len(captured.update.graphs) == captured.update_period  # one graph per way through
+    assert len(step.graphs) == captured.update_period  # one graph per way through
     for name in ("actor", "critic"):
         mine = getattr(captured, name).state_dict()
         for key, value in getattr(eager, name).state_dict().items():

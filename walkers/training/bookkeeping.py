@@ -1,10 +1,12 @@
 """Per-run bookkeeping that every training loop shares.
 
 A loop only acts, steps, observes and updates (:mod:`walkers.training.loops`); after each step it
-hands the :class:`RunBook` the step's losses, and the book does the rest for its run: progress
-counters, metric logging, evaluations (``eval/*``, ``best.pt``), videos, checkpoints
-(``last.pt`` and the local resume copy), the divergence check, the pruning callback, and the
-``final/*`` summary. A population has one book per member.
+hands the :class:`RunBook` the step's losses, and the book has its run's services do what is due
+(:mod:`walkers.training.services`: metric logging, the divergence check, evaluations, pruning,
+videos, periodic checkpoints, one job each, chosen by the run's settings). The book itself holds
+the run's progress, its checkpoints (``last.pt``, ``best.pt``, the local resume copy) and their
+restore, the training env's first reset, the episode log, the CPU-time count and the ``final/*``
+summary. A population has one book per member.
 """
 
 from __future__ import annotations
@@ -20,7 +22,6 @@ import gymnasium as gym
 import torch
 
 from walkers.agents.base import Agent
-from walkers.agents.common.health import SKIPPED_IN_A_ROW
 from walkers.metrics import run_summary
 from walkers.seeding import (
     env_rng_state,
@@ -31,22 +32,11 @@ from walkers.seeding import (
     training_env_seed,
 )
 from walkers.training.evaluation import Evaluation, greedy_evaluation
-from walkers.training.greedy_episodes import record_episodes
-from walkers.training.provenance import DIVERGED_TAG
 from walkers.training.run import ENV_STEP_AXIS, Axis, TrainingRun
+from walkers.training.services import RunService, chosen_services
 from walkers.training.settings import RunSettings
-from walkers.training.video import write_gif
 
 log = logging.getLogger("walkers")
-
-CPU_HOURS = "perf/cpu_hours"
-
-#: Frames kept in the gif logged every ``video_every`` steps (a glance, not a film).
-TRAINING_GIF_FRAMES = 500
-
-
-class TrainingDiverged(RuntimeError):
-    """Every update for ``divergence_patience`` updates in a row had a NaN/inf loss."""
 
 
 @dataclass
@@ -66,7 +56,9 @@ class Progress:
 class RunBook:
     """The bookkeeping of one run (see the module docstring): its ``settings`` say the budget,
     the schedules of evaluations, checkpoints, logs and videos, the seed and the divergence
-    patience; ``threshold`` is the env's return for ``final/steps_to_threshold``."""
+    patience; ``threshold`` is the env's return for ``final/steps_to_threshold``;
+    ``on_evaluation`` (a sweep trial's pruner, ``(step, eval mean) -> stop?``) adds pruning to
+    the services."""
 
     def __init__(
         self,
@@ -86,8 +78,7 @@ class RunBook:
         self.agent, self.env, self.eval_env, self.video_env = agent, env, eval_env, video_env
         self.run, self.settings, self.threshold, self.axis = run, settings, threshold, axis
         self.checkpoint_extra = checkpoint_extra or {}  # e.g. the composed config
-        # called with (step, eval mean) after each evaluation; True stops training (a pruned trial)
-        self.on_evaluation = on_evaluation
+        self.services: list[RunService] = chosen_services(settings, on_evaluation)
         self.evaluation = evaluation
         self.summarize = summarize or (lambda summary: summary)  # extra final/* metrics
         self.stopped_early = False
@@ -185,8 +176,9 @@ class RunBook:
         """Throughput is measured from ``now`` (a ``time.perf_counter()``) at the current step,
         CPU time from here on, ``cpu_share`` of the process's (1/K for K members of a
         population)."""
-        self._log_step, self._log_time = self.progress.step, now
         self._cpu_share, self._cpu_mark = cpu_share, time.process_time()
+        for service in self.services:
+            service.start(self, now)
 
     def cpu_hours(self) -> float:
         """The run's CPU-hours so far: its checkpointed total plus this process's CPU time
@@ -197,69 +189,9 @@ class RunBook:
         return self.progress.cpu_seconds / 3600
 
     def after_step(self, losses: dict[str, torch.Tensor]) -> bool:
-        """Log, evaluate, film, checkpoint when due; True when the run should stop early."""
-        s, p = self.settings, self.progress
-        if p.step % s.log_every == 0:
-            now = time.perf_counter()
-            rate = (p.step - self._log_step) / (now - self._log_time)
-            self._log_step, self._log_time = p.step, now
-            scalars = {k: v.item() for k, v in losses.items()}
-            metrics = {self.axis.rate_metric: rate, CPU_HOURS: self.cpu_hours(), **scalars}
-            self.run.log_metrics(metrics, p.step)
-            self._check_divergence(scalars)
-        if p.step % s.eval_every == 0 or p.step == s.total_steps:
-            mean = self.evaluate()
-            self.run.flush()  # the curves move in the UI at every evaluation
-            if (
-                self.on_evaluation is not None
-                and p.step < s.total_steps  # a finished run is never "stopped early"
-                and self.on_evaluation(p.step, mean)
-            ):
-                self.stopped_early = True
-                return True
-        if s.video_every and p.step % s.video_every == 0:
-            self.record_video()
-        if p.step % s.checkpoint_every == 0 and p.step < s.total_steps:  # the end: in finish()
-            self.checkpoint_and_flush()
-        return False
-
-    def _check_divergence(self, scalars: dict[str, float]) -> None:
-        in_a_row = scalars.get(SKIPPED_IN_A_ROW, 0.0)
-        if in_a_row >= self.settings.divergence_patience:
-            losses = ", ".join(f"{k}={v}" for k, v in scalars.items() if k.startswith("loss/"))
-            kept = (
-                f"checkpoints/last.pt (step {self.last_checkpoint_step}) is the last good one"
-                if self.last_checkpoint_step is not None
-                else "no checkpoint had been written yet"
-            )
-            self.run.set_tags({DIVERGED_TAG: str(self.progress.step)})
-            raise TrainingDiverged(
-                f"training diverged at step {self.progress.step}: the last {int(in_a_row)} "
-                f"updates all had a NaN/inf loss or gradient ({losses}) and were skipped; {kept}"
-            )
-
-    # --- evaluation ---------------------------------------------------------------------------
-    def evaluate(self) -> float:
-        """Run the evaluation; log ``eval/*``, keep ``best.pt``; returns the mean return."""
-        returns, extra = self.evaluation(self.agent, self.eval_env, self.eval_start_seeds)
-        p = self.progress
-        mean = float(returns.mean())
-        p.eval_steps.append(p.step)
-        p.eval_means.append(mean)
-        metrics = {"eval/return_mean": mean, "eval/return_std": float(returns.std())}
-        self.run.log_metrics(metrics | extra, p.step)
-        if mean > p.best_eval:
-            p.best_eval = mean
-            self.save_checkpoint("best.pt")
-        return mean
-
-    def record_video(self) -> None:
-        """Log a gif of one greedy episode (from the first eval start state) to ``videos/``."""
-        _, frames, fps = record_episodes(self.agent, self.video_env, self.eval_start_seeds[:1])
-        path = self.run.folder.video(self.progress.step)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        write_gif(frames[:TRAINING_GIF_FRAMES], path, fps)
-        self.run.upload(path, "videos")
+        """Each service in turn does what is due at the current step; True when one stops the
+        run (the services after it are skipped)."""
+        return any(service.after_step(self, losses) for service in self.services)
 
     # --- the end ------------------------------------------------------------------------------
     def finish(self, rate: float | None, extra: dict[str, float] | None = None) -> dict:

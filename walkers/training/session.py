@@ -125,7 +125,7 @@ def _train_single(
         runs = [TrainingRun.open(client, cfg, axis, data, extra_tags=tags)]
         # From here on the run exists in MLflow: every way out sets its final status.
         with ending(runs):
-            offline = (
+            options = (
                 {
                     "evaluation": offline_evaluation(agent, references.normalized),
                     "summarize": with_normalized_score(references.normalized),
@@ -133,9 +133,9 @@ def _train_single(
                 if data is not None
                 else {}
             )
-            book = _book(cfg, runs[0], agent, env, eval_env, axis, video_env, **offline)
-            if reporter is not None:  # e.g. a job of an Optuna study
-                book.on_evaluation = reporter(cfg)
+            if reporter is not None:  # e.g. a job of an Optuna study: its pruner
+                options["on_evaluation"] = reporter(cfg)
+            book = _book(cfg, runs[0], agent, env, eval_env, axis, video_env, **options)
             if state is not None:
                 book.restore(state)
                 log.info("resuming run %s at step %d", runs[0].run_id, book.progress.step)

@@ -40,7 +40,6 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-import numpy as np
 import torch
 from torch import nn
 from torch.nn import functional as F
@@ -48,7 +47,7 @@ from torch.nn import functional as F
 from walkers.agents.common.actor_critic import ActorCritic, frozen, logged
 from walkers.agents.common.health import skip_nonfinite
 from walkers.agents.common.networks import EnsembleLinear
-from walkers.agents.common.noise import GaussianNoise
+from walkers.agents.td3 import TD3
 from walkers.data.replay import Batch, ReplayBuffer
 from walkers.random_streams import shift_right
 
@@ -175,19 +174,11 @@ class PrioritizedReplay(ReplayBuffer):
         self.priority[:, self.pos] = self.max_priority
         super().add(obs, action, reward, next_obs, terminated, episode_end)
 
-    def sample(self, batch_size: int) -> Batch:
+    def draw_rows(self, batch_size: int) -> torch.Tensor:
+        """``(K, batch_size)`` rows, each member's in proportion to its priorities."""
         cumulative = self.priority.cumsum(dim=1)
         uniform = shift_right(self.sampler.words(batch_size), 40).to(torch.float32) * 2.0**-24
-        idx = torch.searchsorted(cumulative, uniform * cumulative[:, -1:])
-        rows = self._rows
-        return Batch(
-            self.obs[rows, idx],
-            self.action[rows, idx],
-            self.reward[rows, idx],
-            self.next_obs[rows, idx],
-            self.terminated[rows, idx],
-            idx,
-        )
+        return torch.searchsorted(cumulative, uniform * cumulative[:, -1:])
 
     @torch.no_grad()
     def update_priority(self, idx: torch.Tensor, priority: torch.Tensor, keep: torch.Tensor):
@@ -245,11 +236,8 @@ class TD7(ActorCritic):
         **core,
     ):
         super().__init__(obs_dim, action_low, action_high, lr=lr, **core)
-        self.exploration_sigma, self.policy_noise, self.noise_clip = (
-            exploration_noise,
-            policy_noise,
-            noise_clip,
-        )
+        self.exploration_sigma, self.noise_type = exploration_noise, "gaussian"
+        self.policy_noise, self.noise_clip = policy_noise, noise_clip
         self.policy_delay, self.target_update_rate = policy_delay, target_update_rate
         self.lap_alpha, self.min_priority = lap_alpha, min_priority
         self.noise_scale = (self.action_high - self.action_low) / 2
@@ -276,15 +264,9 @@ class TD7(ActorCritic):
     def update_period(self) -> int:
         return self.policy_delay
 
-    # --- acting: a ~ clip(pi(s, f_t(s)) + eps, low, high) ----------------------------------------
-    def exploration_noise(self, rng: np.random.Generator) -> GaussianNoise:
-        return GaussianNoise(self.exploration_sigma, self.act_dim, rng)
-
-    def policy(self, obs: torch.Tensor, noise: np.ndarray | None) -> np.ndarray:
-        actions = self.actor(obs)[:, 0].cpu().numpy()
-        if noise is not None:
-            actions = np.clip(actions + noise * self.noise_scale, self.action_low, self.action_high)
-        return actions.astype(np.float32)
+    # --- acting: a ~ clip(pi(s, f_t(s)) + eps, low, high), TD3's with the actor reading f_t ------
+    exploration_noise = TD3.exploration_noise
+    policy = TD3.policy
 
     # --- learning: Algorithm 1 ---------------------------------------------------------------
     def update(self) -> dict[str, torch.Tensor]:

@@ -106,7 +106,7 @@ class ReplayBuffer:
 
     def sample(self, batch_size: int) -> Batch:
         """Every member's mini-batch, ``(K, batch_size, ...)`` tensors, and the rows drawn."""
-        idx = self.sampler.integers(self._size_t, batch_size)
+        idx = self.draw_rows(batch_size)
         rows = self._rows
         return Batch(
             self.obs[rows, idx],
@@ -116,6 +116,10 @@ class ReplayBuffer:
             self.terminated[rows, idx],
             idx,
         )
+
+    def draw_rows(self, batch_size: int) -> torch.Tensor:
+        """``(K, batch_size)`` rows, uniform over each member's transitions, from its stream."""
+        return self.sampler.integers(self._size_t, batch_size)
 
     def state_dict(self, with_data: bool) -> dict:
         """A single agent's buffer state (member 0 of a population of one)."""

@@ -64,6 +64,9 @@ COMPOSITION_CASES = [
     (["-m", "algo=td3,foo", "seed=0,1"], ["algo='foo'"]),
     (["-m", "sweeps=nope"], ["sweeps='nope'", "td3_walker2d"]),
     (["hydra/launcher=nope"], ["hydra/launcher='nope'", "joblib"]),
+    # an interpolation that names no key, in any job of a multirun
+    (["tracking.run_name=x-${env.nme}"], ["tracking.run_name=x-${env.nme}", "'env.nme' not found"]),
+    (["-m", "env=hopper,pendulum", "job_key=b/${env.name}"], ["job_key=b/${env.name}", "env.name"]),
 ]
 
 

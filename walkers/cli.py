@@ -14,6 +14,8 @@ import sys
 from hydra import compose, initialize_config_dir
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.errors import ConfigCompositionException, MissingConfigException, OverrideParseException
+from omegaconf import OmegaConf
+from omegaconf.errors import InterpolationKeyError, InterpolationResolutionError
 
 from walkers import CONF_DIR as _CONF_DIR
 from walkers import interrupts
@@ -128,10 +130,27 @@ def exit_on_bad_overrides(config_name: str, args: list[str] | None = None) -> No
         combos = _single_values(args)
         with initialize_config_dir(config_dir=CONF_DIR):
             for overrides in combos:
-                compose(config_name=config_name, overrides=overrides)
+                _resolvable(compose(config_name=config_name, overrides=overrides))
     except (MissingConfigException, ConfigCompositionException, OverrideParseException) as e:
         print(f"error: {one_line_hydra_error(e, args)}", file=sys.stderr)
         sys.exit(2)
+    except InterpolationKeyError as e:
+        key, reason = e.full_key, str(e).splitlines()[0]
+        given = next((o for o in overrides_of(args) if o.split("=", 1)[0] == key), key)
+        print(f"error: {given}: {reason}", file=sys.stderr)
+        sys.exit(2)
+
+
+def _resolvable(cfg) -> None:
+    """Raise InterpolationKeyError for a ``${...}`` that names no key of ``cfg``. What a
+    resolver reads where the job runs (``${oc.env:...}``: a cluster node's environment) is the
+    job's to check, not this process's."""
+    try:
+        OmegaConf.to_container(cfg, resolve=True)
+    except InterpolationKeyError:
+        raise
+    except InterpolationResolutionError:
+        pass
 
 
 def or_exit(command, cfg):

@@ -12,7 +12,7 @@ import pytest
 import sqlalchemy
 from mlflow.tracking import MlflowClient
 
-from walkers import cli, interrupts, tracking
+from walkers import interrupts, tracking
 from walkers.tracking.tracker import Tracker
 
 
@@ -42,11 +42,11 @@ class _SignalledWhileOpeningRuns(MlflowClient):
 def stop_handler():
     """walkers' SIGINT/SIGTERM handler in this process, put back as it was afterwards."""
     before = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
-    cli.stop_cleanly_on_signals()
+    interrupts.stop_cleanly_on_signals()
     yield
     for sig, handler in before.items():
         signal.signal(sig, handler)
-    cli._STOPPING.stopping = cli._STOPPING.told = False
+    interrupts._STOPPING.stopping = interrupts._STOPPING.told = False
 
 
 def test_a_signal_inside_a_metrics_write_is_raised_after_it(store, tmp_path, stop_handler):
@@ -115,7 +115,7 @@ def test_a_signal_while_a_run_is_opened_ends_that_run_killed(store, tmp_path, st
     (run,) = MlflowClient(store["uri"]).search_runs([experiment.experiment_id])
     assert run.info.status == "KILLED"  # not RUNNING with nothing left to end it
 
-    cli._STOPPING.stopping = False  # a later process continues it, and is stopped in turn
+    interrupts._STOPPING.stopping = False  # a later process continues it, and is stopped in turn
     with pytest.raises(KeyboardInterrupt, match=f"signal {signal.SIGTERM}"):
         Tracker.reopen(client, run.info.run_id, tmp_path / "spool", resumed_training=True)
     assert MlflowClient(store["uri"]).get_run(run.info.run_id).info.status == "KILLED"

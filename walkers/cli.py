@@ -7,8 +7,6 @@ and turns those errors into the project's form: ``error: <key>=<value> ...`` on 
 
 from __future__ import annotations
 
-import os
-import signal
 import sys
 
 from hydra import compose, initialize_config_dir
@@ -18,7 +16,6 @@ from omegaconf import OmegaConf
 from omegaconf.errors import InterpolationKeyError, InterpolationResolutionError
 
 from walkers import CONF_DIR as _CONF_DIR
-from walkers import interrupts
 from walkers.errors import CheckpointError, ConfigError
 
 CONF_DIR = str(_CONF_DIR)
@@ -172,48 +169,3 @@ def group_by_as_list(args: list[str]) -> list[str]:
         else arg
         for arg in args
     ]
-
-
-class _Stopping:
-    """SIGINT and SIGTERM: the first one stops the run (a KeyboardInterrupt wherever the process
-    is, once the training step or store call under way is over: :mod:`walkers.interrupts`; so
-    every run ends KILLED after a last checkpoint); any further one while it ends is acknowledged
-    in one line and otherwise ignored. ``timeout``, ``scancel`` or ``kill -TERM -<pgid>`` signal
-    make and python both (make then forwards another), a supervisor may insist,
-    a user may press Ctrl-C twice: none of these may break the checkpoint being written or leave
-    the run RUNNING. ``kill -9`` still ends the process at once (``resume=`` continues from the
-    last complete checkpoint)."""
-
-    def __init__(self) -> None:
-        self.stopping = self.told = False
-
-    def __call__(self, signum, frame) -> None:
-        if not self.stopping:
-            self.stopping = True
-            if interrupts.shielding():  # inside a training step or a store call: raised after it
-                interrupts.note(f"signal {signum}")
-                # a step can hold an evaluation, which can take a while: say why we wait
-                name = signal.Signals(signum).name
-                os.write(2, f"stopping ({name}): the step under way ends first\n".encode())
-                return
-            raise KeyboardInterrupt(f"signal {signum}")
-        if not self.told:  # os.write: print() may be in progress in the interrupted frame
-            self.told = True
-            name = signal.Signals(signum).name
-            os.write(
-                2,
-                f"already stopping ({name} again): writing the last checkpoint and the runs' "
-                "status first (kill -9 abandons them)\n".encode(),
-            )
-
-
-_STOPPING = _Stopping()
-
-
-def stop_cleanly_on_signals() -> None:
-    """Ctrl-C and SIGTERM end this process as :class:`_Stopping` says, from now on (a multirun's
-    driver and each job's worker process call it; a second call changes nothing)."""
-    if signal.getsignal(signal.SIGTERM) is _STOPPING:
-        return
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, _STOPPING)

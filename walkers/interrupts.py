@@ -3,7 +3,9 @@ training step (:mod:`walkers.training.loops`: a stop inside an update left the c
 half an update).
 
 walkers turns SIGINT and SIGTERM into a KeyboardInterrupt wherever the main thread is
-(:mod:`walkers.cli`), so a run ends KILLED after a last checkpoint. Raised inside an MLflow call
+(:func:`stop_cleanly_on_signals`, which walkers.train calls; a training started from Python gets
+the same for SIGINT while it trains, :func:`stops_between_steps`), so a run ends KILLED after a
+last checkpoint. Raised inside an MLflow call
 to a sqlite store, a read as much as a write, that exception can leave the store's lock held by a
 connection SQLAlchemy abandons: every later write, the run's last metrics and its KILLED status
 included, then waits out sqlite's busy timeout and the run's store patience (seen under load: a
@@ -14,6 +16,8 @@ over. :class:`walkers.tracking.client.StoreClient` shields every call it makes.
 
 from __future__ import annotations
 
+import os
+import signal
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -57,3 +61,67 @@ def shielded() -> Iterator[None]:
         if _depth == 0 and _noted is not None:
             reason, _noted = _noted, None
             raise KeyboardInterrupt(reason)
+
+
+class _Stopping:
+    """SIGINT and SIGTERM: the first one stops the run (a KeyboardInterrupt wherever the process
+    is, once the training step or store call under way is over: :mod:`walkers.interrupts`; so
+    every run ends KILLED after a last checkpoint); any further one while it ends is acknowledged
+    in one line and otherwise ignored. ``timeout``, ``scancel`` or ``kill -TERM -<pgid>`` signal
+    make and python both (make then forwards another), a supervisor may insist,
+    a user may press Ctrl-C twice: none of these may break the checkpoint being written or leave
+    the run RUNNING. ``kill -9`` still ends the process at once (``resume=`` continues from the
+    last complete checkpoint)."""
+
+    def __init__(self) -> None:
+        self.stopping = self.told = False
+
+    def __call__(self, signum, frame) -> None:
+        if not self.stopping:
+            self.stopping = True
+            if shielding():  # inside a training step or a store call: raised after it
+                note(f"signal {signum}")
+                # a step can hold an evaluation, which can take a while: say why we wait
+                name = signal.Signals(signum).name
+                os.write(2, f"stopping ({name}): the step under way ends first\n".encode())
+                return
+            raise KeyboardInterrupt(f"signal {signum}")
+        if not self.told:  # os.write: print() may be in progress in the interrupted frame
+            self.told = True
+            name = signal.Signals(signum).name
+            os.write(
+                2,
+                f"already stopping ({name} again): writing the last checkpoint and the runs' "
+                "status first (kill -9 abandons them)\n".encode(),
+            )
+
+
+_STOPPING = _Stopping()
+
+
+def stop_cleanly_on_signals() -> None:
+    """Ctrl-C and SIGTERM end this process as :class:`_Stopping` says, from now on (a multirun's
+    driver and each job's worker process call it; a second call changes nothing)."""
+    if signal.getsignal(signal.SIGTERM) is _STOPPING:
+        return
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, _STOPPING)
+
+
+@contextmanager
+def stops_between_steps() -> Iterator[None]:
+    """Inside, a Ctrl-C lands between the training steps, as under ``walkers.train`` (whose
+    handler stays as it is): for a training started from Python, whose SIGINT would otherwise
+    raise wherever the step is. The handler before is put back after."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    before = signal.getsignal(signal.SIGINT)
+    if isinstance(before, _Stopping):
+        yield
+        return
+    signal.signal(signal.SIGINT, _Stopping())
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, before)

@@ -21,8 +21,9 @@ from hydra.types import RunMode
 from omegaconf import DictConfig
 
 from walkers import CONF_DIR
-from walkers.cli import exit_on_bad_overrides, renamed_overrides, stop_cleanly_on_signals
+from walkers.cli import exit_on_bad_overrides, renamed_overrides
 from walkers.errors import CheckpointError, ConfigError
+from walkers.interrupts import stop_cleanly_on_signals
 from walkers.tracking.names import MULTIRUN_JOB_TAG
 
 __all__ = ["main", "train"]

@@ -35,7 +35,7 @@ from tqdm import tqdm
 from walkers.agents.base import Agent, Transition
 from walkers.agents.common.actor_critic import ActorCritic
 from walkers.agents.sb3.twin import SB3Twin
-from walkers.interrupts import shielded, stop_noted
+from walkers.interrupts import shielded, stop_noted, stops_between_steps
 from walkers.training.bookkeeping import RunBook
 from walkers.training.envs import step_vector_env
 
@@ -64,11 +64,7 @@ def train_online(agent: Agent, env: gym.Env, book: RunBook) -> dict[str, float]:
             if stop:
                 return
 
-    def settle() -> None:  # train() called from Python keeps Python's own Ctrl-C, which can land
-        if (steps := getattr(agent, "steps", None)) is not None:  # between observe and the count
-            p.step = steps
-
-    return _running([book], loop, settle=settle)[0]
+    return _running([book], loop)[0]
 
 
 def train_vectorized(
@@ -99,10 +95,7 @@ def train_vectorized(
                     if _after_step(book, losses, bar):
                         return
 
-    def settle() -> None:  # Python's own Ctrl-C (train() called from Python) can land mid-step
-        p.step = agent.steps
-
-    return _running([book], loop, settle=settle)[0]
+    return _running([book], loop)[0]
 
 
 def train_offline(agent: Agent, book: RunBook) -> dict[str, float]:
@@ -135,11 +128,7 @@ def train_population(
             with shielded():
                 _population_step(agent, envs, books, obs, latest, bar)
 
-    def settle() -> None:  # Python's own Ctrl-C (train() called from Python) can land mid-step:
-        for book in books:  # every member checkpoints at the agent's step, to resume together
-            book.progress.step = agent.steps
-
-    return _running(books, loop, aggregate="perf/population_sps", settle=settle)
+    return _running(books, loop, aggregate="perf/population_sps")
 
 
 def _population_step(agent, envs, books, obs, latest, bar) -> None:
@@ -204,10 +193,7 @@ def train_sb3(agent: SB3Twin, book: RunBook) -> dict[str, float]:
                 s.total_steps - p.step, callback=BookKeeping(bar), reset_num_timesteps=False
             )
 
-    def settle() -> None:
-        p.step = agent.model.num_timesteps
-
-    return _running([book], loop, settle=settle)[0]
+    return _running([book], loop)[0]
 
 
 def _after_step(book: RunBook, losses: dict[str, torch.Tensor], bar: tqdm) -> bool:
@@ -221,16 +207,15 @@ def _after_step(book: RunBook, losses: dict[str, torch.Tensor], bar: tqdm) -> bo
 
 
 def _running(
-    books: Sequence[RunBook],
-    loop: Callable[[tqdm], None],
-    aggregate: str | None = None,
-    settle: Callable[[], None] | None = None,
+    books: Sequence[RunBook], loop: Callable[[tqdm], None], aggregate: str | None = None
 ) -> list[dict[str, float]]:
     """Run ``loop`` with a progress bar; checkpoint every run on Ctrl-C; the runs' summaries.
 
     Throughput (``rate_metric``) counts the steps of this session; ``aggregate`` names a metric
-    for the throughput of all the books together (a population's); ``settle`` makes the books'
-    counters consistent before an interrupted loop's checkpoints.
+    for the throughput of all the books together (a population's). A Ctrl-C lands between
+    steps, however the training was started (:func:`walkers.interrupts.stops_between_steps`), so
+    the book's step and the agent's count of what it observed agree in every checkpoint: the
+    book's progress is the run's step count, and nothing has to reconcile the two.
     """
     first = books[0]
     s, p = first.settings, first.progress
@@ -245,16 +230,15 @@ def _running(
     start_step, start = p.step, time.perf_counter()
     for book in books:
         book.start_clock(start, cpu_share=1 / len(books))
-    try:
-        loop(bar)
-    except KeyboardInterrupt:
-        if settle is not None:
-            settle()
-        for book in books:
-            book.checkpoint_and_flush()
-        raise
-    finally:
-        bar.close()
+    with stops_between_steps():  # the last checkpoints too: a second Ctrl-C waits for them
+        try:
+            loop(bar)
+        except KeyboardInterrupt:
+            for book in books:
+                book.checkpoint_and_flush()
+            raise
+        finally:
+            bar.close()
     if p.step == start_step:  # resumed at its budget: nothing ran, no rate
         return [book.finish(None) for book in books]
     rate = (p.step - start_step) / (time.perf_counter() - start)

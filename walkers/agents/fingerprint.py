@@ -25,6 +25,7 @@ nothing in the run that records it. A cache (``$XDG_CACHE_HOME/walkers``, else
 from __future__ import annotations
 
 import contextlib
+import functools
 import hashlib
 import json
 import os
@@ -176,9 +177,11 @@ def _rngs_kept():
             np.random.set_state(state[1])
 
 
+@functools.cache
 def code_digest() -> str:
     """The digest of what computes an update: the source of ``walkers.agents`` and
-    ``walkers.data``, and the torch version."""
+    ``walkers.data``, and the torch version. Read once per process (as the code is loaded
+    once): a multirun's later jobs must not record files edited after their process started."""
     root = Path(__file__).resolve().parents[1]
     digest = hashlib.sha256(torch.__version__.encode())
     for package in _PACKAGES:

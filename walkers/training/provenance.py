@@ -4,6 +4,7 @@ secrets)."""
 
 from __future__ import annotations
 
+import functools
 import socket
 import subprocess
 import sys
@@ -111,8 +112,11 @@ def shareable(cfg: DictConfig) -> dict:
     return data
 
 
+@functools.cache
 def git_commit() -> str:
-    """The commit the code runs from (provenance tag), or "unknown"."""
+    """The commit the code runs from (provenance tag), or "unknown": read once per process, so
+    the later jobs of a multirun run in one process (the basic launcher's) name the commit of the
+    code the process loaded, not a checkout that moved on while they waited."""
     try:
         out = subprocess.run(
             ["git", "rev-parse", "HEAD"],

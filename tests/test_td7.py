@@ -238,3 +238,19 @@ def test_updates_match_the_authors_td7(monkeypatch):
     for ours, k, theirs in same_layers(agent, ref):
         for got, want in ((ours.weight[k], theirs.weight.T), (ours.bias[k, 0], theirs.bias)):
             np.testing.assert_allclose(got.detach(), want.detach(), rtol=1e-4, atol=1e-5)
+
+
+def test_compiled_losses_follow_the_eager_update_through_hard_copies():
+    """``compile=true`` runs TD7's three losses (encoder, critics, actor) through torch.compile:
+    the same updates, including two hard target copies (every 4th update here)."""
+    settings = tiny_td7(target_update_rate=4)
+    eager, compiled = filled_agent(TD7, **settings), filled_agent(TD7, compile=True, **settings)
+    for _ in range(10):
+        expected, got = eager.update(), compiled.update()
+        assert set(got) == set(expected)
+        for key in expected:
+            torch.testing.assert_close(got[key], expected[key], rtol=1e-4, atol=1e-5)
+    for name in ("encoder", "critic_target", "actor_target"):
+        mine = getattr(compiled, name).state_dict()
+        for key, value in getattr(eager, name).state_dict().items():
+            torch.testing.assert_close(mine[key], value, rtol=1e-4, atol=1e-5)

@@ -17,6 +17,7 @@ from omegaconf.errors import InterpolationKeyError, InterpolationResolutionError
 
 from walkers import CONF_DIR as _CONF_DIR
 from walkers.errors import CheckpointError, ConfigError
+from walkers.secrets import has_password, redacted
 
 CONF_DIR = str(_CONF_DIR)
 #: Sweep values Hydra can enumerate (a,b,c / range()); Optuna's interval() etc. are the sweeper's.
@@ -133,7 +134,11 @@ def exit_on_bad_overrides(config_name: str, args: list[str] | None = None) -> No
         sys.exit(2)
     except InterpolationKeyError as e:
         key, reason = e.full_key, str(e).splitlines()[0]
-        given = next((o for o in overrides_of(args) if o.split("=", 1)[0] == key), key)
+        values = [o.split("=", 1)[1] for o in overrides_of(args) if o.startswith(f"{key}=")]
+        value = values[0] if values else None
+        if has_password(value):  # a store URL's password stays out of the line
+            value = redacted(value)
+        given = key if value is None else f"{key}={value}"
         print(f"error: {given}: {reason}", file=sys.stderr)
         sys.exit(2)
 

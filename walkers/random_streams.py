@@ -78,6 +78,10 @@ class RandomStreams:
         of order ``high / 2**63``)."""
         return shift_right(self.words(n), 1) % high
 
+    def uniform(self, n: int) -> torch.Tensor:
+        """``(K, n)`` float32 uniforms in ``[0, 1)`` (24-bit: each a multiple of 2**-24)."""
+        return shift_right(self.words(n), 40).to(torch.float32) * 2.0**-24
+
     def normal(self, shape: Sequence[int]) -> torch.Tensor:
         """``(K, *shape)`` float32 standard normals (Box-Muller on two 24-bit uniforms per
         word: tails end at about 5.8 sigma)."""

@@ -49,7 +49,6 @@ from walkers.agents.common.health import skip_nonfinite
 from walkers.agents.common.networks import EnsembleLinear
 from walkers.agents.td3 import TD3
 from walkers.data.replay import Batch, ReplayBuffer
-from walkers.random_streams import shift_right
 
 
 def avg_l1_norm(x: torch.Tensor, eps: float = 1e-8) -> torch.Tensor:
@@ -177,7 +176,7 @@ class PrioritizedReplay(ReplayBuffer):
     def draw_rows(self, batch_size: int) -> torch.Tensor:
         """``(K, batch_size)`` rows, each member's in proportion to its priorities."""
         cumulative = self.priority.cumsum(dim=1)
-        uniform = shift_right(self.sampler.words(batch_size), 40).to(torch.float32) * 2.0**-24
+        uniform = self.sampler.uniform(batch_size)
         return torch.searchsorted(cumulative, uniform * cumulative[:, -1:])
 
     @torch.no_grad()

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 
-from tests.conftest import all_runs, compose_cfg, run_cli, signal_once_checkpointed
+from tests.conftest import PPO_TINY, TINY, all_runs, compose_cfg, run_cli, signal_once_checkpointed
 from walkers.seeding import (
     env_rng_state,
     eval_start_seeds,
@@ -181,3 +181,27 @@ def test_a_learning_rate_warm_up_longer_than_the_run_is_pointed_out(caplog):
     caplog.clear()
     warn_short_warmup(compose_cfg(["algo=dt", "env=pendulum", "total_steps=20000"]))
     assert not [r for r in caplog.records if "algo.warmup_steps" in r.getMessage()]
+
+
+def test_a_run_from_before_a_hyperparameter_existed_resumes_with_its_declared_default(store):
+    """A checkpoint's config written before ``algo.num_envs`` was declared (PPO's 1M baselines
+    were) resumes with the declared default, the behaviour it had, and the log says so."""
+    first = run_cli(
+        ["algo=ppo", "env=pendulum", *TINY, *PPO_TINY, *store["overrides"]],
+        cwd=store["path"],
+    )
+    assert first.returncode == 0, first.stderr[-2000:]
+    (run,) = all_runs(store["client"])
+    local = store["path"] / "work" / "runs" / run.info.run_id / "resume" / "last.pt"
+    older = checkpoints.load(local)
+    del older["config"]["algo"]["num_envs"]  # as an older walkers wrote it
+    torch.save(older, local)
+    resumed = run_cli(
+        [f"resume={run.info.run_id}", "total_steps=900", *store["overrides"]], cwd=store["path"]
+    )
+    assert resumed.returncode == 0, resumed.stderr[-2000:]
+    assert "predates algo.num_envs=1: resumed with the declared default" in resumed.stdout
+    assert "Downloading artifacts" not in resumed.stderr  # MLflow's progress bars, silenced
+    (run,) = all_runs(store["client"])
+    assert run.info.status == "FINISHED"
+    assert _final_state(store, run.info.run_id)["trainer"]["step"] == 900

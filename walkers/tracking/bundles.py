@@ -31,7 +31,6 @@ import gzip
 import hashlib
 import json
 import logging
-import os
 import shutil
 import tempfile
 import time
@@ -45,7 +44,12 @@ from mlflow.exceptions import MlflowException
 
 from walkers.errors import ConfigError
 from walkers.tracking import histories
-from walkers.tracking.client import get_or_create_experiment, search_runs, tags_equal
+from walkers.tracking.client import (
+    get_or_create_experiment,
+    no_progress_bars,
+    search_runs,
+    tags_equal,
+)
 from walkers.tracking.names import (
     FINISHED,
     JOB_KEY_TAG,
@@ -72,7 +76,6 @@ FINGERPRINT_TAG = "walkers.update_fingerprint"
 #: The artifacts every run carries in its bundle (small, text); checkpoints only on request.
 CONFIG_ARTIFACT = "config.yaml"
 CHECKPOINTS = "checkpoints"
-_PROGRESS_BAR = "MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR"
 #: MLflow's per-call limits of log_batch.
 _BATCH = {"metrics": 1000, "params": 100, "tags": 100}
 
@@ -144,7 +147,7 @@ def export_runs(
         raise ConfigError(f"out={str(out)!r} is not empty: export into a new folder")
     out.parent.mkdir(parents=True, exist_ok=True)
     with (
-        _no_progress_bars(),
+        no_progress_bars(),
         tempfile.TemporaryDirectory(dir=out.parent, prefix=f".{out.name}.") as tmp,
     ):
         staging = Path(tmp) / "bundle"
@@ -164,20 +167,6 @@ def export_runs(
         staging.rename(out)
     size = sum(p.stat().st_size for p in out.rglob("*") if p.is_file())
     return Exported(out, len(records), size)
-
-
-@contextlib.contextmanager
-def _no_progress_bars():
-    """MLflow draws a progress bar for every artifact it downloads: one per run here."""
-    before = os.environ.get(_PROGRESS_BAR)
-    os.environ[_PROGRESS_BAR] = "false"
-    try:
-        yield
-    finally:
-        if before is None:
-            del os.environ[_PROGRESS_BAR]
-        else:
-            os.environ[_PROGRESS_BAR] = before
 
 
 def _run_record(client, run, staging: Path, checkpoints: bool, fingerprint) -> dict:

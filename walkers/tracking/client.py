@@ -8,6 +8,7 @@ called, never at import.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import logging
 import os
@@ -167,10 +168,29 @@ def require_run(client: MlflowClient, run_id: str, uri: str, key: str = "run_id"
         ) from None
 
 
+_PROGRESS_BAR = "MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR"
+
+
+@contextlib.contextmanager
+def no_progress_bars():
+    """MLflow draws a progress bar on stderr for every artifact it downloads (three lines each
+    for one small checkpoint): nothing a user acts on."""
+    before = os.environ.get(_PROGRESS_BAR)
+    os.environ[_PROGRESS_BAR] = "false"
+    try:
+        yield
+    finally:
+        if before is None:
+            del os.environ[_PROGRESS_BAR]
+        else:
+            os.environ[_PROGRESS_BAR] = before
+
+
 def download_checkpoint(client: MlflowClient, run_id: str, filename: str, dst) -> Path:
     """``checkpoints/<filename>`` of a run, downloaded into the folder ``dst``."""
     try:
-        return Path(client.download_artifacts(run_id, f"checkpoints/{filename}", str(dst)))
+        with no_progress_bars():
+            return Path(client.download_artifacts(run_id, f"checkpoints/{filename}", str(dst)))
     except Exception:
         raise CheckpointError(f"run {run_id} has no checkpoints/{filename} artifact") from None
 

@@ -4,9 +4,9 @@ A loop only acts, steps, observes and updates (:mod:`walkers.training.loops`); a
 hands the :class:`RunBook` the step's losses, and the book has its run's services do what is due
 (:mod:`walkers.training.services`: metric logging, the divergence check, evaluations, pruning,
 videos, periodic checkpoints, one job each, chosen by the run's settings). The book itself holds
-the run's progress, its checkpoints (``last.pt``, ``best.pt``, the local resume copy) and their
-restore, the training env's first reset, the episode log, the CPU-time count and the ``final/*``
-summary. A population has one book per member.
+the run's progress, its checkpoints (``last.pt``, ``best.pt``, the local resume copy; read back
+by :func:`walkers.training.resume.restore`), the training env's first reset, the episode log,
+the CPU-time count and the ``final/*`` summary. A population has one book per member.
 """
 
 from __future__ import annotations
@@ -27,7 +27,6 @@ from walkers.seeding import (
     env_rng_state,
     eval_start_seeds,
     restore_env_rng,
-    restore_torch_rng,
     torch_rng_state,
     training_env_seed,
 )
@@ -84,41 +83,15 @@ class RunBook:
         self.stopped_early = False
         self.last_checkpoint_step: int | None = None
         self.progress = Progress()
-        self._env_rng: dict | None = None  # a resumed run's training-env RNG, until its reset
+        # a resumed run's training-env RNG, until its first reset
+        self.pending_env_rng: dict | None = None
         self.eval_start_seeds = eval_start_seeds(settings.seed, settings.eval_episodes)
         self.start_clock(time.perf_counter())
 
     # --- checkpoints --------------------------------------------------------------------------
-    def restore(self, state: dict) -> None:
-        """Continue from a checkpoint written by :meth:`save_checkpoint`."""
-        self.agent.load_state_dict(state["agent"])
-        # a checkpoint from before runs counted their CPU time: the total is unknown, not 0
-        self.progress = Progress(**{"cpu_seconds": math.nan} | state["trainer"])
-        self.last_checkpoint_step = self.progress.step
-        restore_torch_rng(state)
-        self._env_rng = state.get("env_rng")
-        mark = self.run.logged_through
-        if mark is not None and mark > self.progress.step:
-            log.warning(
-                "run %s logged metrics up to step %d before it stopped; it resumes from its "
-                "checkpoint at step %d and logs from step %d on (no step is logged twice)",
-                self.run.run_id,
-                mark,
-                self.progress.step,
-                mark + 1,
-            )
-        if notes := self.agent.resume_notes():  # e.g. a replay buffer that had to be refilled
-            if refill := notes.get("walkers.buffer_refill"):
-                log.warning(
-                    "run %s resumed without the replay buffer's transitions: refilling them, "
-                    "%s, before updating again",
-                    self.run.run_id,
-                    refill,
-                )
-            self.run.set_tags(notes)
-
     def save_checkpoint(self, name: str = "last.pt") -> None:
-        """Write ``name`` and upload it; keep ``last.pt`` whole as the run's local resume copy.
+        """Write ``name`` and upload it; keep ``last.pt`` whole as the run's local resume copy
+        (:func:`walkers.training.resume.restore` reads them back).
 
         The uploaded ``last.pt`` holds the replay buffer only with ``save_buffer=true`` (it is
         large); the local resume copy always does, so a resume on this machine is exact.
@@ -156,10 +129,10 @@ class RunBook:
         """The seed of this session's first reset of the training env: the run's own in a fresh
         run; None in a resumed run, whose env RNG is restored from its checkpoint here (for a
         loop that resets the env itself, e.g. SB3's)."""
-        if self._env_rng is None:
+        if self.pending_env_rng is None:
             return training_env_seed(self.settings.seed)
-        restore_env_rng(self.env, self._env_rng)
-        self._env_rng = None
+        restore_env_rng(self.env, self.pending_env_rng)
+        self.pending_env_rng = None
         return None
 
     def record_episode(self, info: dict) -> None:

@@ -1,16 +1,39 @@
-"""``resume=``: continue a run (or a population's runs together) from its last checkpoint.
+"""How a run continues: every way training picks up where a run left off, in one module.
 
-A resumed run uses its stored config; only :data:`RESUME_OVERRIDABLE` keys are taken from the
-new command line. Its last checkpoint comes from :meth:`TrainingRun.last_checkpoint`.
+- ``resume=<id>`` (``resume=[<id>,...]`` for a population's runs together): the run's stored
+  config with the overrides allowed on resume (:func:`load_run`, :func:`load_population`);
+- a job run again (its ``job_key``): a FINISHED run is its result (:func:`finished_attempt`),
+  a RUNNING, KILLED or FAILED one continues (:func:`continue_earlier_attempt`);
+- which checkpoint: the local resume copy or MLflow's, the newer (:func:`last_checkpoint`);
+- into the run: agent, progress, RNGs and the agent's resume notes (:func:`restore`).
+
+The run itself is reopened by :meth:`TrainingRun.open` (``cfg.resume`` set), and the checkpoints
+read here are written by :meth:`RunBook.save_checkpoint`.
 """
 
 from __future__ import annotations
 
+import logging
+import math
+from typing import TYPE_CHECKING
+
 from omegaconf import DictConfig, OmegaConf
 
-from walkers.errors import ConfigError
+from walkers import tracking
+from walkers.agents.declarations.hyperparameters import defaults
+from walkers.agents.declarations.schemas import schema_of
+from walkers.errors import CheckpointError, ConfigError
+from walkers.seeding import restore_torch_rng
 from walkers.tracking import differing_keys, flatten
-from walkers.training.run import TrainingRun, job_key_of_seed
+from walkers.training import checkpoints
+from walkers.training.provenance import DIVERGED_TAG, MEMBER_TAG, SUPERSEDED_TAG
+from walkers.training.run import RunFolder, TrainingRun, job_key_of_seed, run_job_keys
+
+if TYPE_CHECKING:
+    from walkers.training.bookkeeping import RunBook
+
+log = logging.getLogger("walkers")
+
 
 #: Keys a resumed run takes from the new command line; everything else comes from its checkpoint.
 RESUME_OVERRIDABLE = (
@@ -43,7 +66,7 @@ def check_resume_given(resume) -> None:
 def load_run(client, cfg: DictConfig, overrides, run_id: str | None = None):
     """The run's stored config (with the allowed new overrides) and its last checkpoint."""
     run_id = str(cfg.resume) if run_id is None else run_id
-    state = TrainingRun.last_checkpoint(client, cfg, run_id)
+    state = last_checkpoint(client, cfg, run_id)
     stored = OmegaConf.create(state["config"])
     given = {o.split("=", 1)[0].lstrip("+~") for o in overrides}
     for key in RESUME_OVERRIDABLE:
@@ -54,12 +77,28 @@ def load_run(client, cfg: DictConfig, overrides, run_id: str | None = None):
     for key in cfg:  # settings added since the run was made (e.g. seeds_per_trial): today's
         if key not in stored:
             stored[key] = cfg[key]
+    _declare_hyperparameters_added_since(stored.algo, run_id)
     stored.tracking = cfg.tracking
     # a sweep job's trial and key are the current attempt's (a retried trial has a new number)
     # (a study's population job: each member keyed by its own seed)
     stored.trial, stored.job_key = cfg.trial, job_key_of_seed(cfg.get("job_key"), stored.seed)
     stored.resume = run_id
     return stored, state
+
+
+def _declare_hyperparameters_added_since(algo: DictConfig, run_id: str) -> None:
+    """A hyperparameter declared after the run was made (PPO's ``num_envs``, say) takes its
+    declared default, which is the behaviour the run had before it existed; logged, so that
+    the resumed run says what it was not told."""
+    schema = schema_of(algo.get("_target_", ""))
+    if schema is None:
+        return
+    added = {k: v for k, v in defaults(schema).items() if k not in algo}
+    for key, value in added.items():
+        algo[key] = value
+    if added:
+        listed = ", ".join(f"algo.{k}={v!r}" for k, v in added.items())
+        log.info("run %s predates %s: resumed with the declared default", run_id, listed)
 
 
 def load_population(client, cfg: DictConfig, overrides):
@@ -101,3 +140,164 @@ def load_population(client, cfg: DictConfig, overrides):
     population.population = len(members)
     population.resume, population.job_key = run_ids, cfg.get("job_key")
     return population, members
+
+
+# --- a job run again -------------------------------------------------------------------------
+def _attempts(client, cfg: DictConfig) -> list:
+    """The runs earlier attempts of this job (``job_key``) left, any status."""
+    if not cfg.job_key:
+        return []
+    experiment = client.get_experiment_by_name(cfg.tracking.experiment)
+    if experiment is None:
+        return []
+    runs = []
+    for key in dict.fromkeys(run_job_keys(cfg)):  # one key, or a key per member
+        query = tracking.tags_equal({tracking.JOB_KEY_TAG: key})
+        runs += tracking.search_runs(client, experiment.experiment_id, query)
+    return runs
+
+
+def finished_attempt(client, cfg: DictConfig):
+    """The FINISHED run of this job (single runs only), if an earlier attempt finished it."""
+    if cfg.population > 1:
+        return None
+    done = [r for r in _attempts(client, cfg) if r.info.status == tracking.FINISHED]
+    return done[0] if done else None
+
+
+def continue_earlier_attempt(client, cfg: DictConfig) -> DictConfig:
+    """A job run again continues the run(s) of its earlier attempt instead of starting more.
+
+    Ray runs a job again when its worker died (kill -9, ``ray stop`` on the node); a study
+    runs a trial again when its sweeper died (``optuna.max_retry``). The earlier attempt's
+    run, left RUNNING (or KILLED by SIGTERM), is found by the job's key (``job_key``) and
+    resumed from its last checkpoint, fetched from MLflow on whatever worker this is; a
+    population's K member runs are resumed together (``resume=[...]``). A run that ended
+    FAILED (an error, not a divergence) is continued the same way, as a rerun of an A/B
+    study asks. Without checkpoints to continue from (none yet, or a population's members
+    cut at different steps) the earlier runs are marked FAILED (tagged superseded) and new
+    ones start.
+    """
+    earlier = [
+        r
+        for r in _attempts(client, cfg)
+        if r.info.status in ("RUNNING", "KILLED")
+        or (r.info.status == "FAILED" and not _gave_up_on(r))
+    ]
+    if not earlier:
+        return cfg
+    if cfg.population > 1:
+        by_member = {int(r.data.tags.get(MEMBER_TAG, -1)): r for r in earlier}
+        runs = [by_member.get(i) for i in range(cfg.population)]
+    else:
+        runs = earlier[:1]
+    problem = _why_not_continued(client, cfg, runs)
+    ids = [r.info.run_id for r in earlier if r is not None]
+    if problem:
+        log.warning(
+            "job %s ran before as run(s) %s, %s: marked FAILED; starting anew",
+            cfg.job_key,
+            ", ".join(ids),
+            problem,
+        )
+        for run_id in ids:
+            run = TrainingRun.attach(client, cfg.work_dir, run_id)
+            run.set_tags({SUPERSEDED_TAG: f"{problem}: the job ran again as new run(s)"})
+            run.end(tracking.FAILED)
+        return cfg
+    log.warning(
+        "job %s ran before as run(s) %s (%s): continuing it from its last checkpoint",
+        cfg.job_key,
+        ", ".join(ids),
+        earlier[0].info.status,
+    )
+    cfg = cfg.copy()
+    cfg.resume = ids[0] if cfg.population == 1 else [r.info.run_id for r in runs]
+    return cfg
+
+
+def last_checkpoint(client, cfg: DictConfig, run_id: str) -> dict:
+    """Run ``run_id``'s ``last.pt`` (a clear error if ``tracking.uri`` has no such run):
+    the local resume copy (replay buffer included) where this machine trained the run and
+    MLflow's is not newer, else the one uploaded to MLflow."""
+    tracking.require_run(client, run_id, cfg.tracking.uri, key="resume")
+    return _last_checkpoint(client, run_id, cfg.work_dir)
+
+
+# --- its last checkpoint, and into the run --------------------------------------------------
+def _last_checkpoint(client, run_id: str, work_dir) -> dict:
+    folder = RunFolder.of(work_dir, run_id)
+    local = folder.resume_checkpoint
+    try:
+        uploaded = tracking.download_checkpoint(client, run_id, "last.pt", folder.download)
+    except CheckpointError:  # never uploaded (e.g. the store was down): the local copy will do
+        if not local.is_file():
+            raise
+        uploaded = None
+    uploaded = checkpoints.load(uploaded) if uploaded is not None else None  # damaged: an error
+    if local.is_file():
+        whole = checkpoints.load(local)
+        if uploaded is None or whole["trainer"]["step"] >= uploaded["trainer"]["step"]:
+            log.info("resuming from %s (with its replay buffer, if the agent has one)", local)
+            return whole
+        log.warning(
+            "%s is at step %d, MLflow's last.pt at step %d: resuming from MLflow's",
+            local,
+            whole["trainer"]["step"],
+            uploaded["trainer"]["step"],
+        )
+    return uploaded
+
+
+def _gave_up_on(run) -> bool:
+    """A FAILED run not to continue: superseded by a new attempt, or ended by divergence."""
+    return SUPERSEDED_TAG in run.data.tags or DIVERGED_TAG in run.data.tags
+
+
+def _why_not_continued(client, cfg: DictConfig, runs: list) -> str | None:
+    """Why the earlier attempt's runs (one per member, None where missing) cannot go on."""
+    if any(r is None for r in runs):
+        return f"which are not the {cfg.population} members of a population"
+    steps = set()
+    for run in runs:
+        run_id = run.info.run_id
+        uploaded = [a.path for a in client.list_artifacts(run_id, "checkpoints")]
+        local = RunFolder.of(cfg.work_dir, run_id).resume_checkpoint
+        if "checkpoints/last.pt" not in uploaded and not local.is_file():
+            return "which ended without a checkpoint"
+        if len(runs) > 1:  # members continue together only from one step
+            steps.add(_last_checkpoint(client, run_id, cfg.work_dir)["trainer"]["step"])
+    if len(steps) > 1:
+        return f"whose members' checkpoints are at different steps {sorted(steps)}"
+    return None
+
+
+def restore(book: RunBook, state: dict) -> None:
+    """Continue the book's run from ``state``, a checkpoint written by
+    :meth:`RunBook.save_checkpoint`: the agent, the loop's progress, torch's RNGs, the training
+    env's RNG (taken at the book's first reset), and the agent's resume notes as run tags."""
+    book.agent.load_state_dict(state["agent"])
+    # a checkpoint from before runs counted their CPU time: the total is unknown, not 0
+    book.progress = type(book.progress)(**{"cpu_seconds": math.nan} | state["trainer"])
+    book.last_checkpoint_step = book.progress.step
+    restore_torch_rng(state)
+    book.pending_env_rng = state.get("env_rng")
+    mark = book.run.logged_through
+    if mark is not None and mark > book.progress.step:
+        log.warning(
+            "run %s logged metrics up to step %d before it stopped; it resumes from its "
+            "checkpoint at step %d and logs from step %d on (no step is logged twice)",
+            book.run.run_id,
+            mark,
+            book.progress.step,
+            mark + 1,
+        )
+    if notes := book.agent.resume_notes():  # e.g. a replay buffer that had to be refilled
+        if refill := notes.get("walkers.buffer_refill"):
+            log.warning(
+                "run %s resumed without the replay buffer's transitions: refilling them, "
+                "%s, before updating again",
+                book.run.run_id,
+                refill,
+            )
+        book.run.set_tags(notes)

@@ -3,9 +3,9 @@
 :class:`TrainingRun` is the one object the training command, the loops' book and resume talk to
 about a run; what a training run says to MLflow goes through it (the session only connects the
 client; ``make lint`` keeps the book and the loops from importing :mod:`walkers.tracking`). It
-opens the run (new, or the resumed one reopened), continues an earlier attempt of a job run
-again, finds its last checkpoint, logs and uploads, and :func:`ending` gives it its final status
-on every way out. :class:`RunFolder` is the one place the local layout is spelled::
+opens the run (new, or the resumed one reopened), logs and uploads, and :func:`ending` gives it
+its final status on every way out; which run continues, and from which checkpoint, is
+:mod:`walkers.training.resume`'s. :class:`RunFolder` is the one place the local layout is spelled::
 
     <work_dir>/runs/<run id>/
         config.yaml                  the resolved config (secrets redacted), also logged
@@ -27,12 +27,8 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 from walkers import tracking
-from walkers.errors import CheckpointError
 from walkers.training import checkpoints
 from walkers.training.provenance import (
-    DIVERGED_TAG,
-    MEMBER_TAG,
-    SUPERSEDED_TAG,
     WORKER_TAG,
     dataset_params,
     new_run_tags,
@@ -148,87 +144,6 @@ class TrainingRun:
         attempt superseded), without reopening it."""
         return cls(tracking.Tracker.attach(client, run_id, "."), RunFolder.of(work_dir, run_id))
 
-    @staticmethod
-    def _attempts(client, cfg: DictConfig) -> list:
-        """The runs earlier attempts of this job (``job_key``) left, any status."""
-        if not cfg.job_key:
-            return []
-        experiment = client.get_experiment_by_name(cfg.tracking.experiment)
-        if experiment is None:
-            return []
-        runs = []
-        for key in dict.fromkeys(run_job_keys(cfg)):  # one key, or a key per member
-            query = tracking.tags_equal({tracking.JOB_KEY_TAG: key})
-            runs += tracking.search_runs(client, experiment.experiment_id, query)
-        return runs
-
-    @staticmethod
-    def finished_attempt(client, cfg: DictConfig):
-        """The FINISHED run of this job (single runs only), if an earlier attempt finished it."""
-        if cfg.population > 1:
-            return None
-        done = [r for r in TrainingRun._attempts(client, cfg) if r.info.status == tracking.FINISHED]
-        return done[0] if done else None
-
-    @staticmethod
-    def continue_earlier_attempt(client, cfg: DictConfig) -> DictConfig:
-        """A job run again continues the run(s) of its earlier attempt instead of starting more.
-
-        Ray runs a job again when its worker died (kill -9, ``ray stop`` on the node); a study
-        runs a trial again when its sweeper died (``optuna.max_retry``). The earlier attempt's
-        run, left RUNNING (or KILLED by SIGTERM), is found by the job's key (``job_key``) and
-        resumed from its last checkpoint, fetched from MLflow on whatever worker this is; a
-        population's K member runs are resumed together (``resume=[...]``). A run that ended
-        FAILED (an error, not a divergence) is continued the same way, as a rerun of an A/B
-        study asks. Without checkpoints to continue from (none yet, or a population's members
-        cut at different steps) the earlier runs are marked FAILED (tagged superseded) and new
-        ones start.
-        """
-        earlier = [
-            r
-            for r in TrainingRun._attempts(client, cfg)
-            if r.info.status in ("RUNNING", "KILLED")
-            or (r.info.status == "FAILED" and not _gave_up_on(r))
-        ]
-        if not earlier:
-            return cfg
-        if cfg.population > 1:
-            by_member = {int(r.data.tags.get(MEMBER_TAG, -1)): r for r in earlier}
-            runs = [by_member.get(i) for i in range(cfg.population)]
-        else:
-            runs = earlier[:1]
-        problem = _why_not_continued(client, cfg, runs)
-        ids = [r.info.run_id for r in earlier if r is not None]
-        if problem:
-            log.warning(
-                "job %s ran before as run(s) %s, %s: marked FAILED; starting anew",
-                cfg.job_key,
-                ", ".join(ids),
-                problem,
-            )
-            for run_id in ids:
-                run = TrainingRun.attach(client, cfg.work_dir, run_id)
-                run.set_tags({SUPERSEDED_TAG: f"{problem}: the job ran again as new run(s)"})
-                run.end(tracking.FAILED)
-            return cfg
-        log.warning(
-            "job %s ran before as run(s) %s (%s): continuing it from its last checkpoint",
-            cfg.job_key,
-            ", ".join(ids),
-            earlier[0].info.status,
-        )
-        cfg = cfg.copy()
-        cfg.resume = ids[0] if cfg.population == 1 else [r.info.run_id for r in runs]
-        return cfg
-
-    @staticmethod
-    def last_checkpoint(client, cfg: DictConfig, run_id: str) -> dict:
-        """Run ``run_id``'s ``last.pt`` (a clear error if ``tracking.uri`` has no such run):
-        the local resume copy (replay buffer included) where this machine trained the run and
-        MLflow's is not newer, else the one uploaded to MLflow."""
-        tracking.require_run(client, run_id, cfg.tracking.uri, key="resume")
-        return _last_checkpoint(client, run_id, cfg.work_dir)
-
     # --- while it trains ----------------------------------------------------------------------
     @property
     def run_id(self) -> str:
@@ -311,50 +226,3 @@ def ending(runs: list[TrainingRun], population: bool = False):
             log.info("continue them together: python -m walkers.train 'resume=[%s]'", ids)
         elif runs and runs[0].status == tracking.KILLED:
             log.info("continue it: python -m walkers.train resume=%s", runs[0].run_id)
-
-
-def _last_checkpoint(client, run_id: str, work_dir) -> dict:
-    folder = RunFolder.of(work_dir, run_id)
-    local = folder.resume_checkpoint
-    try:
-        uploaded = tracking.download_checkpoint(client, run_id, "last.pt", folder.download)
-    except CheckpointError:  # never uploaded (e.g. the store was down): the local copy will do
-        if not local.is_file():
-            raise
-        uploaded = None
-    uploaded = checkpoints.load(uploaded) if uploaded is not None else None  # damaged: an error
-    if local.is_file():
-        whole = checkpoints.load(local)
-        if uploaded is None or whole["trainer"]["step"] >= uploaded["trainer"]["step"]:
-            log.info("resuming from %s (with its replay buffer, if the agent has one)", local)
-            return whole
-        log.warning(
-            "%s is at step %d, MLflow's last.pt at step %d: resuming from MLflow's",
-            local,
-            whole["trainer"]["step"],
-            uploaded["trainer"]["step"],
-        )
-    return uploaded
-
-
-def _gave_up_on(run) -> bool:
-    """A FAILED run not to continue: superseded by a new attempt, or ended by divergence."""
-    return SUPERSEDED_TAG in run.data.tags or DIVERGED_TAG in run.data.tags
-
-
-def _why_not_continued(client, cfg: DictConfig, runs: list) -> str | None:
-    """Why the earlier attempt's runs (one per member, None where missing) cannot go on."""
-    if any(r is None for r in runs):
-        return f"which are not the {cfg.population} members of a population"
-    steps = set()
-    for run in runs:
-        run_id = run.info.run_id
-        uploaded = [a.path for a in client.list_artifacts(run_id, "checkpoints")]
-        local = RunFolder.of(cfg.work_dir, run_id).resume_checkpoint
-        if "checkpoints/last.pt" not in uploaded and not local.is_file():
-            return "which ended without a checkpoint"
-        if len(runs) > 1:  # members continue together only from one step
-            steps.add(_last_checkpoint(client, run_id, cfg.work_dir)["trainer"]["step"])
-    if len(steps) > 1:
-        return f"whose members' checkpoints are at different steps {sorted(steps)}"
-    return None

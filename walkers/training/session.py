@@ -74,14 +74,14 @@ def train(
         warn_short_warmup(cfg)
     client = tracking.connect(cfg.tracking.uri)
     if not cfg.resume:
-        done = TrainingRun.finished_attempt(client, cfg)
+        done = resume.finished_attempt(client, cfg)
         if done is not None:  # a job run again after it finished: its result, nothing trained
             log.info(
                 "job %s already FINISHED as run %s: nothing to train", cfg.job_key, done.info.run_id
             )
             return done.data.metrics.get(cfg.optimized_metric, math.nan)
         # a multirun job run again (its worker died) continues its earlier attempt's run
-        cfg = TrainingRun.continue_earlier_attempt(client, cfg)
+        cfg = resume.continue_earlier_attempt(client, cfg)
     state, members = None, None
     if OmegaConf.is_list(cfg.resume):  # several runs, continued together as one population
         cfg, members = resume.load_population(client, cfg, overrides)
@@ -137,7 +137,7 @@ def _train_single(
                 options["on_evaluation"] = reporter(cfg)
             book = _book(cfg, runs[0], agent, env, eval_env, axis, video_env, **options)
             if state is not None:
-                book.restore(state)
+                resume.restore(book, state)
                 log.info("resuming run %s at step %d", runs[0].run_id, book.progress.step)
             if agent.offline:
                 summary = train_offline(agent, book)
@@ -183,7 +183,7 @@ def _train_population(
                 for i, (member, run) in enumerate(zip(members, runs, strict=True))
             ]
             for book, (_, state) in zip(books, resumed or [], strict=False):
-                book.restore(state)
+                resume.restore(book, state)
             if resumed:
                 log.info("resuming %d runs together at step %d", k, books[0].progress.step)
             return train_population(agent, envs, books)

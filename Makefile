@@ -87,7 +87,7 @@ bench-gpu: $(STAMP)  ## the prepared script for a lent GPU, under 5 minutes: the
 	timeout 30 $(PY) benchmarks/bench_dt.py --devices cuda --reps 2 --steps 10
 
 test-gpu: $(STAMP)  ## on a GPU machine: the agents, populations, PPO, checkpoints and resume with device=auto on CUDA (a CPU machine runs them on the CPU)
-	$(PY) -m pytest -q -n 4 --dist loadscope -m "not cluster and not browser and not faults and not slow" tests/test_algorithms.py tests/test_population.py tests/test_ppo.py tests/test_ppo_vector.py tests/test_checkpoints.py tests/test_seeds_and_resume.py tests/test_health.py tests/test_td3.py tests/test_sac.py tests/test_capture.py tests/test_random_streams.py $(ARGS)
+	$(PY) -m pytest -q -n 4 --dist loadscope -m "not cluster and not browser and not faults and not slow" tests/agents/test_algorithms.py tests/agents/test_population.py tests/agents/test_ppo.py tests/agents/test_ppo_vector.py tests/training/test_checkpoints.py tests/training/test_seeds_and_resume.py tests/agents/test_health.py tests/agents/test_td3.py tests/agents/test_sac.py tests/agents/test_capture.py tests/test_random_streams.py $(ARGS)
 
 bench-envs: $(STAMP)  ## how N training envs step on this machine's cores: a sequential loop, Gymnasium's SyncVectorEnv and AsyncVectorEnv, and envpool when installed (ARGS="--envs 1,2,4,8")
 	$(PY) benchmarks/bench_envs.py $(ARGS)

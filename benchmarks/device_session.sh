@@ -6,7 +6,7 @@
 #   device: run(command="bash benchmarks/device_session.sh", carry=[".whl"], timeout_s=540)
 #
 # Parts, in this order (all by default, or name some: `bash benchmarks/device_session.sh capture
-# update`): capture (the captured update against the eager one, tests/test_capture.py, and the
+# update`): capture (the captured update against the eager one, tests/agents/test_capture.py, and the
 # streams on CUDA), update (the TD3 update: plain, walkers eager, compiled, captured; and by
 # phase), throughput (TD3/SAC/PPO, captured too, populations 1/5/16), dt, envs (env stepping on
 # the machine's cores), tests (make test-gpu). Each part's log goes to $OUT (what comes back), a
@@ -30,7 +30,7 @@ part() {  # part NAME SECONDS COMMAND...
   echo "$name: exit $rc after $((SECONDS - start)) s (limit $limit)" | tee -a "$OUT/summary.txt"
 }
 py=.venv/bin/python
-part capture 90 $py -m pytest -q -p no:cacheprovider tests/test_capture.py tests/test_random_streams.py
+part capture 90 $py -m pytest -q -p no:cacheprovider tests/agents/test_capture.py tests/test_random_streams.py
 part update 75 $py benchmarks/bench_update.py --device cuda --reps 3 --phases
 part throughput 130 $py benchmarks/bench_throughput.py --device cuda --only "TD3,SAC,TD7,PPO" \
   --population 1,5,16 --reps 2 --steps 200

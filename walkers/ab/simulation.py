@@ -4,7 +4,7 @@ round by round, as the sweeper runs them: the family-wise error rate and the see
 Returns are drawn per arm, env and seed from one of three shapes, all scaled to the env's
 normalized units: ``normal``; ``bimodal`` (a seed learns or it does not, as RL seeds do: 70% at
 the arm's level, 30% far below); ``heavy`` (Student t with 2 degrees of freedom: rare seeds far
-off). Used by ``tests/test_sequential.py`` and ``benchmarks/bench_sequential.py``.
+off). Used by ``tests/analysis/test_sequential.py`` and ``benchmarks/bench_sequential.py``.
 """
 
 from __future__ import annotations

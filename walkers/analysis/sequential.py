@@ -18,7 +18,7 @@ of the maximum seeds seen; look ``k`` tests at the increment ``alpha(t_k) - alph
 by the union bound the chance of any false "better" or false "equal" is at most ``alpha_q`` per
 question whatever the returns' distribution (the rank tests are exact). Pocock's shape spends
 early, so an obvious difference stops at the first look (O'Brien-Fleming's would need dozens of
-seeds before its first look could reject anything). ``tests/test_sequential.py`` and
+seeds before its first look could reject anything). ``tests/analysis/test_sequential.py`` and
 ``benchmarks/bench_sequential.py`` check the error rate by simulation (normal, bimodal,
 heavy-tailed returns; several pairs and envs at once) and measure the seeds saved against a
 fixed-n design of the same power.

@@ -9,8 +9,8 @@ references from ``conf/env/<env>.yaml`` (``scores``). An arm's runs over the sui
   the median (over envs of each env's mean score: rliable's ``aggregate_median``, not the
   median of the pooled runs), the IQM (the mean of the middle 50% of the pooled (env, seed)
   scores, ``scipy.stats.trim_mean(x, 0.25)``) and the optimality gap (the pooled mean shortfall
-  below 100: ``mean(max(100 - x, 0))``); ``tests/test_suite.py`` pins each to values rliable
-  1.2.0 itself computed on a fixture;
+  below 100: ``mean(max(100 - x, 0))``); ``tests/analysis/test_suite.py`` pins each to values
+  rliable 1.2.0 itself computed on a fixture;
 - P(A > B) averaged over envs (per env the Mann-Whitney U / nm of the two arms' seeds), with
   the same stratified bootstrap;
 - the performance profile: the fraction of an arm's runs whose normalized score exceeds tau;

@@ -1,7 +1,8 @@
-"""SAC and CrossQ, the soft actor-critics: the squashed Gaussian's math, the temperature;
-for both, reproducibility, populations, the NaN guard, compile and checkpoints (CrossQ's with its
-normalization's running statistics); SAC's resume through the CLI, and learning Pendulum (whose
-policy is then replayed by walkers.evaluate and recorded by walkers.collect)."""
+"""The soft actor-critics of walkers/agents/sac.py: the squashed Gaussian's math, the
+temperature; for SAC and CrossQ, which share SoftActorCritic, reproducibility, populations, the
+NaN guard, compile and checkpoints (CrossQ's with its normalization's running statistics); SAC's
+resume through the CLI, and learning Pendulum (whose policy is then replayed by walkers.evaluate
+and recorded by walkers.collect). CrossQ's own parts are in test_crossq.py."""
 
 from __future__ import annotations
 

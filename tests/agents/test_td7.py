@@ -4,7 +4,7 @@ The authors' code (github.com/sfujim/TD7, ``TD7.py`` and ``buffer.py``) is not a
 side-by-side test reads it from a checkout named by ``TD7_REFERENCE`` and skips without one:
 
     git clone https://github.com/sfujim/TD7 /tmp/TD7
-    TD7_REFERENCE=/tmp/TD7 .venv/bin/python -m pytest tests/test_td7.py
+    TD7_REFERENCE=/tmp/TD7 .venv/bin/python -m pytest tests/agents/test_td7.py
 
 The other tests hold LAP's loss, sampling and priorities, the hard target updates, the value
 clipping and the checkpoint of the prioritised buffer to what the paper defines.
@@ -102,7 +102,7 @@ def test_a_member_updates_as_the_single_agent_of_its_seed():
     initial weights, priorities, batches and noise, so the same critics after 60 updates (3
     hard target copies) to float rounding. (Through a whole training the returns part sooner
     than TD3's: rounding at 1e-8 reaches the third pendulum episode at 1e-3, so this is held
-    here, update by update, rather than end to end as in tests/test_population.py.)"""
+    here, update by update, rather than end to end as in tests/agents/test_population.py.)"""
     settings = tiny_td7(target_update_rate=20) | {"learning_starts": 0, "buffer_size": 500}
     small = defaults_for(TD7, hidden_sizes=[32, 32], batch_size=32, **settings)
     pair = TD7(3, [-2.0], [2.0], population=2, seed=5, **small)

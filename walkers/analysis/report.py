@@ -198,6 +198,34 @@ def _arms_section(c: Comparison) -> list[str]:
     return out
 
 
+def _pairwise_section(c: Comparison, level: str) -> list[str]:
+    """Each pair of arms: P(A > B), the test, the effect and the power."""
+    if not c.pairs:  # one arm: nothing to pair
+        return []
+    out = [
+        "",
+        "## Pairwise",
+        "",
+        f"| A vs B | on | P(A > B) [{level} CI] | Mann-Whitney p | mean A - B (Hedges' g) "
+        f"| power | seeds per arm for {TARGET:.0%} power | power for the smallest effect |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for p in c.pairs:
+        w = p.power
+        powers = (
+            f"{_num(w.difference)} ({w.effect_size:+.2f}) | {w.power:.0%} "
+            f"| {w.seeds if w.seeds is not None else f'> {MAX_SEEDS}'} "
+            f"| {w.power_for_smallest:.0%} (difference {_num(w.smallest)})"
+            if w is not None
+            else "- | - | - | -"
+        )
+        out.append(
+            f"| {p.a} vs {p.b} | {QUANTITY_NAMES[p.quantity]} | {_interval(*p.p_improvement)} "
+            f"| {p.p_value:.3g} | {powers} |"
+        )
+    return out
+
+
 def _published_section(c: Comparison) -> list[str]:
     """Published figures for the algorithms in the report, beside what was measured here."""
     if not c.published:
@@ -273,27 +301,7 @@ def markdown(c: Comparison, source: str) -> str:
         )
     out += _published_section(c)
     out += _arms_section(c)
-    out += [
-        "",
-        "## Pairwise",
-        "",
-        f"| A vs B | on | P(A > B) [{level} CI] | Mann-Whitney p | mean A - B (Hedges' g) "
-        f"| power | seeds per arm for {TARGET:.0%} power | power for the smallest effect |",
-        "|---|---|---|---|---|---|---|---|",
-    ]
-    for p in c.pairs:
-        w = p.power
-        powers = (
-            f"{_num(w.difference)} ({w.effect_size:+.2f}) | {w.power:.0%} "
-            f"| {w.seeds if w.seeds is not None else f'> {MAX_SEEDS}'} "
-            f"| {w.power_for_smallest:.0%} (difference {_num(w.smallest)})"
-            if w is not None
-            else "- | - | - | -"
-        )
-        out.append(
-            f"| {p.a} vs {p.b} | {QUANTITY_NAMES[p.quantity]} | {_interval(*p.p_improvement)} "
-            f"| {p.p_value:.3g} | {powers} |"
-        )
+    out += _pairwise_section(c, level)
     methods = sorted({p.power.method for p in c.pairs if p.power is not None})
     if methods:
         out += [

@@ -207,6 +207,15 @@ def run_cli_signalled_inside_an_update(
     )
 
 
+def pendulum_report(store_overrides: list[str], algos: list[str], out: Path):
+    """``walkers.compare`` of ``algos`` on Pendulum, from the store the overrides name, into
+    ``out`` (200 bootstrap resamples: enough for a test): (comparison, out, plots)."""
+    from walkers.analysis.comparison import compare
+
+    overrides = [*store_overrides, "env=pendulum", f"algos=[{','.join(algos)}]", f"out={out}"]
+    return compare(compose_cfg([*overrides, "n_resamples=200"], config_name="compare"))
+
+
 def all_runs(client: MlflowClient) -> list:
     """Every run in every experiment of a store (empty for a store never written to)."""
     return client.search_runs([e.experiment_id for e in client.search_experiments()])

@@ -20,6 +20,7 @@ from tests.conftest import (
     metric_steps,
     new_store,
     one_line_error,
+    pendulum_report,
     run_cli,
     run_cli_signalled_inside_an_update,
 )
@@ -243,18 +244,7 @@ def test_a_td3bc_run_counts_gradient_steps_and_reports_a_normalized_score(chain)
 
 
 def test_report_puts_td3bc_beside_td3(chain, tmp_path):
-    comparison, out, _ = compare(
-        compose_cfg(
-            [
-                *chain["overrides"],
-                "env=pendulum",
-                "algos=[td3,td3bc]",
-                f"out={tmp_path}",
-                "n_resamples=200",
-            ],
-            config_name="compare",
-        )
-    )
+    comparison, out, _ = pendulum_report(chain["overrides"], ["td3", "td3bc"], tmp_path)
     td3bc = next(r for r in comparison.algos if r.algo == "td3bc")
     assert td3bc.x_axis == "gradient_steps" and td3bc.dataset == DATASET
     assert comparison.budgets == {"env_steps": TD3_STEPS, "gradient_steps": STEPS}

@@ -18,9 +18,9 @@ def test_a_results_page_is_its_bundle_s_report(name, tmp_path):
     assert committed, f"results/{name} has no report: run python -m walkers.results {name}"
     for path in committed:
         summary = json.loads((out / path).read_text())
-        assert summary == json.loads(
-            (RESULTS_DIR / name / "report" / path).read_text()
-        ), f"results/{name}/report/{path} drifted from its bundle: python -m walkers.results"
+        assert summary == json.loads((RESULTS_DIR / name / "report" / path).read_text()), (
+            f"results/{name}/report/{path} drifted from its bundle: python -m walkers.results"
+        )
         if "pairs" in summary:  # an env's report pairs arms only where there are two or more
             pairwise = "## Pairwise" in (out / path.parent / "report.md").read_text()
             assert pairwise == bool(summary["pairs"]) == (len(summary["algos"]) > 1)

@@ -22,9 +22,9 @@ from tests.conftest import (
     metric_steps,
     new_store,
     one_line_error,
+    pendulum_report,
     run_cli,
 )
-from walkers.analysis.comparison import compare
 from walkers.data import datasets
 from walkers.data.datasets import OfflineData
 from walkers.data.replay import replay_episodes
@@ -265,18 +265,7 @@ def test_each_target_return_is_evaluated_and_steers_the_policy(offline):
 
 
 def test_report_puts_dt_beside_td3(offline, tmp_path):
-    comparison, out, _ = compare(
-        compose_cfg(
-            [
-                *offline["overrides"],
-                "env=pendulum",
-                "algos=[td3,dt]",
-                f"out={tmp_path}",
-                "n_resamples=200",
-            ],
-            config_name="compare",
-        )
-    )
+    comparison, out, _ = pendulum_report(offline["overrides"], ["td3", "dt"], tmp_path)
     dt = next(r for r in comparison.algos if r.algo == "dt")
     assert dt.x_axis == "gradient_steps" and dt.dataset == EXPERT
     assert comparison.budgets == {"env_steps": PENDULUM_TD3_STEPS, "gradient_steps": DT_STEPS}

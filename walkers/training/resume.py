@@ -77,7 +77,7 @@ def load_run(client, cfg: DictConfig, overrides, run_id: str | None = None):
     for key in cfg:  # settings added since the run was made (e.g. seeds_per_trial): today's
         if key not in stored:
             stored[key] = cfg[key]
-    _declare_hyperparameters_added_since(stored.algo, run_id)
+    _fill_hyperparameters_declared_since(stored.algo, run_id)
     stored.tracking = cfg.tracking
     # a sweep job's trial and key are the current attempt's (a retried trial has a new number)
     # (a study's population job: each member keyed by its own seed)
@@ -86,7 +86,7 @@ def load_run(client, cfg: DictConfig, overrides, run_id: str | None = None):
     return stored, state
 
 
-def _declare_hyperparameters_added_since(algo: DictConfig, run_id: str) -> None:
+def _fill_hyperparameters_declared_since(algo: DictConfig, run_id: str) -> None:
     """A hyperparameter declared after the run was made (PPO's ``num_envs``, say) takes its
     declared default, which is the behaviour the run had before it existed; logged, so that
     the resumed run says what it was not told."""

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import logging
 import math
-from typing import TYPE_CHECKING
 
 from omegaconf import DictConfig, OmegaConf
 
@@ -26,11 +25,9 @@ from walkers.errors import CheckpointError, ConfigError
 from walkers.seeding import restore_torch_rng
 from walkers.tracking import differing_keys, flatten
 from walkers.training import checkpoints
+from walkers.training.bookkeeping import Progress, RunBook
 from walkers.training.provenance import DIVERGED_TAG, MEMBER_TAG, SUPERSEDED_TAG
 from walkers.training.run import RunFolder, TrainingRun, job_key_of_seed, run_job_keys
-
-if TYPE_CHECKING:
-    from walkers.training.bookkeeping import RunBook
 
 log = logging.getLogger("walkers")
 
@@ -278,7 +275,7 @@ def restore(book: RunBook, state: dict) -> None:
     env's RNG (taken at the book's first reset), and the agent's resume notes as run tags."""
     book.agent.load_state_dict(state["agent"])
     # a checkpoint from before runs counted their CPU time: the total is unknown, not 0
-    book.progress = type(book.progress)(**{"cpu_seconds": math.nan} | state["trainer"])
+    book.progress = Progress(**{"cpu_seconds": math.nan} | state["trainer"])
     book.last_checkpoint_step = book.progress.step
     restore_torch_rng(state)
     book.pending_env_rng = state.get("env_rng")

@@ -2,6 +2,7 @@
 
     python -m walkers.export tracking.experiment=ab_tiny study=tiny out=results/tiny
     python -m walkers.export tracking.experiment=walkers 'where={algo: td3}' checkpoints=true out=b
+    python -m walkers.export ... out=results/tiny/bundle replace=true   # the same bundle, anew
 
 The bundle's format, and why it is not mlflow-export-import's: :mod:`walkers.tracking.bundles`.
 """
@@ -23,6 +24,7 @@ STATUSES = ("FINISHED", "KILLED", "FAILED", "RUNNING")
 
 
 def export(cfg: DictConfig) -> bundles.Exported:
+    checkpoints, replace = _flag(cfg.checkpoints, "checkpoints"), _flag(cfg.replace, "replace")
     statuses = list(cfg.statuses)
     bad = [s for s in statuses if s not in STATUSES]
     if bad or not statuses:
@@ -44,16 +46,23 @@ def export(cfg: DictConfig) -> bundles.Exported:
     selection = f"study={study}" if study else "experiment"
     if where:
         selection += " where " + ", ".join(f"{k}={v}" for k, v in where.items())
-    selection += f"; statuses {','.join(statuses)}" + ("; checkpoints" * bool(cfg.checkpoints))
+    selection += f"; statuses {','.join(statuses)}" + ("; checkpoints" * checkpoints)
     return bundles.export_runs(
         client,
         cfg.tracking.experiment,
         runs,
         Path(cfg.out),
         selection,
-        checkpoints=bool(cfg.checkpoints),
+        checkpoints=checkpoints,
         fingerprint=fingerprint.of_run,
+        replace=replace,
     )
+
+
+def _flag(value, key: str) -> bool:
+    if not isinstance(value, bool):
+        raise ConfigError(f"{key}={value!r} is not allowed: true or false")
+    return value
 
 
 @hydra.main(config_path=str(CONF_DIR), config_name="export")

@@ -188,6 +188,22 @@ def test_a_bad_export_is_refused_in_one_line_and_writes_nothing(studied):
     assert sorted(p.name for p in source["path"].iterdir()) == before
 
 
+def test_the_same_export_again_says_how_to_write_it_anew_and_replace_true_does(studied, tmp_path):
+    source, bundle, _ = studied
+    out = tmp_path / "again"
+    shutil.copytree(bundle, out)
+    before = (out / bundles.RUNS_FILE).read_bytes()
+    runs = bundles.read_bundle(out)["runs"]
+    line = one_line_error(export(source, "study=t", f"out={out}"))
+    assert f"out='{out}' holds a bundle already: pass replace=true to write it anew" in line
+    assert (out / bundles.RUNS_FILE).read_bytes() == before  # untouched
+    (out / bundles.RUNS_FILE).write_bytes(b"stale")  # an earlier export, which replace swaps
+    again = export(source, "study=t", f"out={out}", "replace=true")
+    assert again.returncode == 0 and "exported 11 runs" in again.stdout, again.stderr[-2000:]
+    assert bundles.read_bundle(out)["runs"] == runs  # the same runs, written anew
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["again"]  # no staging left beside it
+
+
 @pytest.mark.parametrize(
     ("args", "expected"),
     [
@@ -196,6 +212,7 @@ def test_a_bad_export_is_refused_in_one_line_and_writes_nothing(studied):
         (["study=t", "where={algo: a2c}"], "no run of 'ab_tiny' matches: nothing exported"),
         (["study=t", "where=[3]"], "where=[3] is not allowed: a mapping of tags"),
         (["study=t", "out=."], "out='.' is not empty: export into a new folder"),
+        (["study=t", "replace=yes"], "replace='yes' is not allowed: true or false"),
     ],
 )
 def test_bad_exports_are_refused(studied, args, expected):

@@ -141,8 +141,14 @@ def export_runs(
     leaves no half-written bundle. ``fingerprint(tags, config)``: the update's fingerprint of a
     run (:mod:`walkers.agents.fingerprint`), kept with it where the run has none yet."""
     out = Path(out)
-    if replace and (out / RUNS_FILE).is_file():
+    earlier_bundle = (out / RUNS_FILE).is_file()
+    if replace and earlier_bundle:
         pass  # swapped below, once the new one is whole
+    elif earlier_bundle:
+        raise ConfigError(
+            f"out={str(out)!r} holds a bundle already: pass replace=true to write it anew, or "
+            "export into a new folder"
+        )
     elif out.exists() and any(out.iterdir()):
         raise ConfigError(f"out={str(out)!r} is not empty: export into a new folder")
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -14,6 +14,12 @@ BENCH_ENV ?= walker2d
 BENCH_STEPS ?= 100000
 BENCH_SEEDS ?= 3
 BENCH_EXPERIMENT ?= bench_learning_$(BENCH_ENV)
+# make baseline: one algorithm's locomotion baseline, keyed so that the same command continues it
+BASELINE_ALGO ?= td3
+BASELINE_ENVS ?= walker2d,hopper,half_cheetah
+BASELINE_SEEDS ?= 0,1,2
+BASELINE_STEPS ?= 1000000
+BASELINE_STORE ?= sqlite:///.walkers/baselines.db
 
 help:  ## list the make targets
 	@grep -hE '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk 'BEGIN {FS = ":.*## "}; {printf "  make %-16s %s\n", $$1, $$2}'
@@ -46,6 +52,9 @@ offline: $(STAMP)  ## offline RL end to end in minutes: TD3 on Pendulum -> Minar
 
 study: $(STAMP)  ## an A/B study to its verdict in minutes: REINFORCE vs TD3 on Pendulum and InvertedPendulum, seeds in rounds (conf/ab/tiny.yaml); rerun to pick up where it stopped
 	$(PY) -m walkers.train -m ab=tiny hydra/launcher=joblib $(ARGS)
+
+baseline: $(STAMP)  ## one algorithm's locomotion baseline at its defaults: 1M steps x seeds 0-2 x Walker2d, Hopper, HalfCheetah, one torch thread, into .walkers/baselines.db; Ctrl-C stops it at a checkpoint and the same command continues it, across sessions (BASELINE_ALGO=td3 BASELINE_ENVS=hopper BASELINE_SEEDS=0; off-policy seeds as one population: BASELINE_SEEDS=0 ARGS=population=3); then `python -m walkers.export` it into results/
+	$(PY) -m walkers.train -m algo=$(BASELINE_ALGO) 'env=$(BASELINE_ENVS)' 'seed=$(BASELINE_SEEDS)' total_steps=$(BASELINE_STEPS) torch_threads=1 progress=false 'job_key="baseline/$(BASELINE_ALGO)/$${env.id}/{seed}"' 'tracking.run_name="baseline-$(BASELINE_ALGO)-$${env.id}-s{seed}"' tracking.experiment=baseline_$(BASELINE_ALGO) tracking.uri=$(BASELINE_STORE) $(ARGS)
 
 compare: $(STAMP)  ## A/B report from finished runs (ARGS="env=walker2d algos=[reinforce,td3] tracking.experiment=...")
 	$(PY) -m walkers.compare $(ARGS)
@@ -134,4 +143,4 @@ clean:  ## remove run outputs (mlflow.db, mlartifacts/, outputs/, multirun/, .wa
 	rm -rf mlflow.db mlruns mlartifacts outputs multirun .walkers reports .pytest_cache .ruff_cache
 	find . -name __pycache__ -type d -prune -not -path './$(VENV)/*' -exec rm -rf {} +
 
-.PHONY: help install train ab ab-all study offline compare plan results docs dashboard bench-sequential ui-check test test-slow test-faults test-cluster chaos stack bench bench-throughput bench-dt bench-learning bench-scale menus lint ui clean
+.PHONY: help install train ab ab-all study baseline offline compare plan results docs dashboard bench-sequential ui-check test test-slow test-faults test-cluster chaos stack bench bench-throughput bench-dt bench-learning bench-scale menus lint ui clean

@@ -249,3 +249,30 @@ def test_a_population_job_run_again_continues_its_member_runs(store):
         assert run.info.status == "FINISHED"
         steps = [m.step for m in client.get_metric_history(run.info.run_id, "eval/return_mean")]
         assert steps == sorted(set(steps)) and steps[-1] == 1500  # none twice, to the end
+
+    third = run_cli(args, cwd=store["path"])  # once more, after it finished: nothing to train
+    assert third.returncode == 0 and "nothing to train" in third.stdout, third.stderr[-2000:]
+    assert {r.info.run_id for r in all_runs(client)} == {r.info.run_id for r in runs} | (
+        first if "starting anew" in log else set()
+    )
+
+
+def test_seeds_that_finished_alone_leave_their_population_job_nothing_to_train(store):
+    """A job key and run name with {seed} in them name each run by its own seed, alone or as a
+    member (make baseline's keys): once seeds 0 and 1 finished as single runs, the population
+    job of seeds 0-1 finds them and trains nothing, and the other way round."""
+    keyed = ['job_key="keyed/{seed}"', 'tracking.run_name="keyed-s{seed}"']
+    common = ["algo=td3", "env=pendulum", *TINY, *tiny("td3"), *keyed, *store["overrides"]]
+    alone = run_cli(["-m", "seed=0,1", *common], cwd=store["path"])
+    assert alone.returncode == 0, alone.stderr[-3000:]
+    runs = all_runs(store["client"])
+    assert sorted(r.info.run_name for r in runs) == ["keyed-s0", "keyed-s1"]
+    assert sorted(r.data.tags["walkers.job_key"] for r in runs) == ["keyed/0", "keyed/1"]
+
+    together = run_cli(["population=2", "seed=0", *common], cwd=store["path"])
+    assert together.returncode == 0, together.stderr[-3000:]
+    assert "already FINISHED as run(s)" in together.stdout
+    assert len(all_runs(store["client"])) == 2  # nothing trained again
+    alone_again = run_cli(["seed=1", *common], cwd=store["path"])
+    assert alone_again.returncode == 0 and "nothing to train" in alone_again.stdout
+    assert len(all_runs(store["client"])) == 2

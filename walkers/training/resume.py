@@ -2,7 +2,7 @@
 
 - ``resume=<id>`` (``resume=[<id>,...]`` for a population's runs together): the run's stored
   config with the overrides allowed on resume (:func:`load_run`, :func:`load_population`);
-- a job run again (its ``job_key``): a FINISHED run is its result (:func:`finished_attempt`),
+- a job run again (its ``job_key``): FINISHED runs are its result (:func:`finished_attempts`),
   a RUNNING, KILLED or FAILED one continues (:func:`continue_earlier_attempt`);
 - which checkpoint: the local resume copy or MLflow's, the newer (:func:`last_checkpoint`);
 - into the run: agent, progress, RNGs and the agent's resume notes (:func:`restore`).
@@ -154,12 +154,25 @@ def _attempts(client, cfg: DictConfig) -> list:
     return runs
 
 
-def finished_attempt(client, cfg: DictConfig):
-    """The FINISHED run of this job (single runs only), if an earlier attempt finished it."""
-    if cfg.population > 1:
-        return None
-    done = [r for r in _attempts(client, cfg) if r.info.status == tracking.FINISHED]
-    return done[0] if done else None
+def finished_attempts(client, cfg: DictConfig) -> list | None:
+    """The FINISHED run of each of this job's runs (one, or one per member of a population),
+    if earlier attempts finished them all; else None. A member's run is the single run of its
+    seed, so a population whose seeds all finished alone has nothing left to train either."""
+    keys = run_job_keys(cfg)
+    finished = [r for r in _attempts(client, cfg) if r.info.status == tracking.FINISHED]
+    shared_key = len(set(keys)) < len(keys)  # no {seed} in it: members told apart by their tag
+    done = []
+    for member, key in enumerate(keys):
+        runs = [
+            r
+            for r in finished
+            if r.data.tags.get(tracking.JOB_KEY_TAG) == key
+            and (not shared_key or r.data.tags.get(MEMBER_TAG) == str(member))
+        ]
+        if not runs:
+            return None
+        done.append(runs[0])
+    return done
 
 
 def continue_earlier_attempt(client, cfg: DictConfig) -> DictConfig:

@@ -67,19 +67,20 @@ def train(
     ``reporter`` makes what a single run's evaluations report to (a sweep's trial)."""
     resume.check_resume_given(cfg.resume)
     check_environment(cfg)  # before anything is created
-    if cfg.population == 1 and cfg.job_key:  # the key of the one run: its seed's
+    if cfg.population == 1:  # the key and name of the one run: its seed's, as a member's
         cfg.job_key = job_key_of_seed(cfg.job_key, cfg.seed)
+        cfg.tracking.run_name = job_key_of_seed(cfg.tracking.run_name, cfg.seed)
     if not cfg.resume:
         validate(cfg)  # before anything is created
         warn_short_warmup(cfg)
     client = tracking.connect(cfg.tracking.uri)
     if not cfg.resume:
-        done = resume.finished_attempt(client, cfg)
-        if done is not None:  # a job run again after it finished: its result, nothing trained
-            log.info(
-                "job %s already FINISHED as run %s: nothing to train", cfg.job_key, done.info.run_id
-            )
-            return done.data.metrics.get(cfg.optimized_metric, math.nan)
+        done = resume.finished_attempts(client, cfg)
+        if done:  # a job run again after it finished: its result, nothing trained
+            ids = ", ".join(run.info.run_id for run in done)
+            log.info("job %s already FINISHED as run(s) %s: nothing to train", cfg.job_key, ids)
+            values = [run.data.metrics.get(cfg.optimized_metric, math.nan) for run in done]
+            return float(np.mean(values))
         # a multirun job run again (its worker died) continues its earlier attempt's run
         cfg = resume.continue_earlier_attempt(client, cfg)
     state, members = None, None

@@ -97,3 +97,15 @@ def test_a_variable_the_job_reads_from_its_environment_is_named_when_missing(sto
     assert line.startswith("error: WALKERS_TEST_NOT_EXPORTED is not set on ")
     assert "before `ray start`" in line
     assert all_runs(store["client"]) == []
+
+
+@pytest.mark.parametrize("multirun", [[], ["-m", "seed=0,1"]], ids=["run", "multirun"])
+def test_a_password_in_the_tracking_uri_is_refused_before_hydra_writes_it(tmp_path, multirun):
+    """Refused in the job, the URL had already reached Hydra's .hydra/ files and launch log."""
+    uri = "tracking.uri=postgresql://walker:hunter2@127.0.0.1:1/mlflow"
+    result = run_cli([*multirun, uri], cwd=tmp_path)
+    assert "tracking.uri='postgresql://walker:***@127.0.0.1:1/mlflow' carries a password" in (
+        one_line_error(result)
+    )
+    assert "hunter2" not in result.stdout + result.stderr
+    assert list(tmp_path.iterdir()) == []  # no outputs/ or multirun/ holding it

@@ -18,6 +18,7 @@ from omegaconf.errors import InterpolationKeyError, InterpolationResolutionError
 from walkers import CONF_DIR as _CONF_DIR
 from walkers.errors import CheckpointError, ConfigError
 from walkers.secrets import has_password, redacted
+from walkers.tracking.client import refuse_password
 
 CONF_DIR = str(_CONF_DIR)
 #: Sweep values Hydra can enumerate (a,b,c / range()); Optuna's interval() etc. are the sweeper's.
@@ -128,9 +129,17 @@ def exit_on_bad_overrides(config_name: str, args: list[str] | None = None) -> No
         combos = _single_values(args)
         with initialize_config_dir(config_dir=CONF_DIR):
             for overrides in combos:
-                _resolvable(compose(config_name=config_name, overrides=overrides))
+                cfg = compose(config_name=config_name, overrides=overrides)
+                _resolvable(cfg)
+                # before Hydra writes the overrides into .hydra/ files and its launch log
+                refuse_password(
+                    OmegaConf.select(cfg, "tracking.uri", throw_on_resolution_failure=False)
+                )
     except (MissingConfigException, ConfigCompositionException, OverrideParseException) as e:
         print(f"error: {one_line_hydra_error(e, args)}", file=sys.stderr)
+        sys.exit(2)
+    except ConfigError as e:
+        print(f"error: {e}", file=sys.stderr)
         sys.exit(2)
     except InterpolationKeyError as e:
         key, reason = e.full_key, str(e).splitlines()[0]

@@ -119,6 +119,19 @@ def get_or_create_experiment(client: MlflowClient, name: str) -> str:
         return experiment.experiment_id
 
 
+def refuse_password(uri: str | None) -> None:
+    """A tracking URI that carries a password is a :class:`ConfigError`: stores are given by
+    reference. Checked before Hydra writes a job's files (:mod:`walkers.cli`) and again on
+    connecting."""
+    if uri and urlsplit(uri).password is not None:
+        raise ConfigError(
+            f"tracking.uri={redacted_uri(uri)!r} carries a password, which would reach MLflow "
+            "params, Ray's logs and Hydra's files: leave it out of the URI and give it by "
+            "reference (MLFLOW_TRACKING_USERNAME / MLFLOW_TRACKING_PASSWORD for a server, "
+            "PGPASSWORD or ~/.pgpass for a PostgreSQL store)"
+        )
+
+
 def connect(uri: str) -> StoreClient:
     """A :class:`StoreClient` for ``uri``; an unreachable or unusable store is a
     :class:`ConfigError`.
@@ -128,13 +141,7 @@ def connect(uri: str) -> StoreClient:
     """
     for name, value in QUICK_HTTP_RETRIES.items():
         os.environ.setdefault(name, value)
-    if urlsplit(uri).password is not None:
-        raise ConfigError(
-            f"tracking.uri={redacted_uri(uri)!r} carries a password, which would reach MLflow "
-            "params, Ray's logs and Hydra's files: leave it out of the URI and give it by "
-            "reference (MLFLOW_TRACKING_USERNAME / MLFLOW_TRACKING_PASSWORD for a server, "
-            "PGPASSWORD or ~/.pgpass for a PostgreSQL store)"
-        )
+    refuse_password(uri)
     try:
         if uri.startswith(("http://", "https://")):
             urllib.request.urlopen(f"{uri.rstrip('/')}/health", timeout=10).close()

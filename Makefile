@@ -95,6 +95,9 @@ bench-gpu: $(STAMP)  ## the prepared script for a lent GPU, under 5 minutes: the
 	timeout 180 $(PY) benchmarks/bench_throughput.py --device cuda --only "TD3,SAC,PPO" --population 1,5,16 --reps 2 --steps 200
 	timeout 30 $(PY) benchmarks/bench_dt.py --devices cuda --reps 2 --steps 10
 
+baselines-gpu:  ## on a lent GPU: the next off-policy 100k baselines results/ lacks, 3 seeds as one captured population each, 4 side by side, each finished one a results page in $$OUT/results (benchmarks/device_baselines.sh; sets itself up from .whl/)
+	bash benchmarks/device_baselines.sh
+
 test-gpu: $(STAMP)  ## on a GPU machine: the agents, populations, PPO, checkpoints and resume with device=auto on CUDA (a CPU machine runs them on the CPU)
 	$(PY) -m pytest -q -n 4 --dist loadscope -m "not cluster and not browser and not faults and not slow" tests/agents/test_algorithms.py tests/agents/test_population.py tests/agents/test_ppo.py tests/agents/test_ppo_vector.py tests/training/test_checkpoints.py tests/training/test_seeds_and_resume.py tests/agents/test_health.py tests/agents/test_td3.py tests/agents/test_sac.py tests/agents/test_capture.py tests/test_random_streams.py $(ARGS)
 
@@ -143,4 +146,4 @@ clean:  ## remove run outputs (mlflow.db, mlartifacts/, outputs/, multirun/, .wa
 	rm -rf mlflow.db mlruns mlartifacts outputs multirun .walkers reports .pytest_cache .ruff_cache
 	find . -name __pycache__ -type d -prune -not -path './$(VENV)/*' -exec rm -rf {} +
 
-.PHONY: help install train ab ab-all study baseline offline compare plan results docs dashboard bench-sequential ui-check test test-slow test-faults test-cluster chaos stack bench bench-throughput bench-dt bench-learning bench-scale menus lint ui clean
+.PHONY: help install train ab ab-all study baseline baselines-gpu offline compare plan results docs dashboard bench-sequential ui-check test test-slow test-faults test-cluster chaos stack bench bench-throughput bench-dt bench-learning bench-scale menus lint ui clean

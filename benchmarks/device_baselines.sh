@@ -23,7 +23,7 @@ RESULTS=${RESULTS:-$REPO/results}  # the pages there already
 PAIRS=${PAIRS:-"td3:half_cheetah sac:hopper sac:half_cheetah ddpg:walker2d ddpg:hopper ddpg:half_cheetah td7:walker2d td7:hopper td7:half_cheetah sac:walker2d"}
 JOBS=${JOBS:-4}
 STEPS=${STEPS:-100000}
-DEADLINE=${DEADLINE:-470}
+DEADLINE=${DEADLINE:-440}
 DEVICE=${DEVICE:-cuda}
 EXTRA=${EXTRA:-}
 WORK=$(mktemp -d)  # stores, checkpoints and Hydra's folders: only the pages travel
@@ -46,7 +46,7 @@ echo "device_baselines: ${todo[*]:-nothing left} on $machine, $STEPS steps, unti
 
 train() {  # train ALGO ENV: its 3 seeds as one population, into a store of its own
   local algo=$1 env=$2 name=$1_$2_$steps_k
-  cd "$WORK" && PYTHONPATH=$REPO timeout -s INT -k 90 "$DEADLINE" "$py" -m walkers.train \
+  cd "$WORK" && PYTHONPATH=$REPO timeout -s INT -k 45 "$DEADLINE" "$py" -m walkers.train \
     algo="$algo" env="$env" population=3 seed=0 total_steps="$STEPS" device="$DEVICE" torch_threads=2 \
     progress=false "job_key='baseline/$algo/\${env.id}/{seed}'" \
     "tracking.run_name='baseline-$algo-\${env.id}-s{seed}'" tracking.experiment="baseline_$algo" \

@@ -9,6 +9,7 @@ import json
 import shutil
 
 import pytest
+import yaml
 
 from tests.conftest import compose_cfg, new_store, one_line_error, run_cli
 from walkers.analysis.comparison import build_comparison
@@ -99,6 +100,25 @@ def test_a_reference_trained_by_another_update_is_refused_in_one_line(stores, tm
     assert "reference 'td3_bundle' is not like for like: run " in line
     assert "was trained by another update than today's td3 (number 0: " in line, line
     assert not (ours["path"] / "refused").exists()
+
+
+def test_a_reference_from_before_a_hyperparameter_existed_is_checked_with_its_default(
+    stores, tmp_path
+):
+    """A run made before ``algo.capture`` was declared has no such key in its config: today's
+    update is built with the declared default, the behaviour the run had (a TD3 baseline of
+    results/ was refused with a TypeError before)."""
+    _, ours, bundle = stores
+
+    def older(record):
+        config = yaml.safe_load(record["config"])
+        del config["algo"]["capture"]
+        record["config"] = yaml.safe_dump(config)
+
+    edited = _edited(bundle, tmp_path, older)
+    result = compare(ours, f"reference=[{edited}]", out="older")
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "seeds: sac 2, td3 2" in result.stdout
 
 
 def _set(section: str, key: str, value: str):

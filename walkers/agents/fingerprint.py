@@ -38,6 +38,7 @@ import torch
 import yaml
 from omegaconf import OmegaConf
 
+from walkers.agents.declarations.schemas import declared_since
 from walkers.errors import ConfigError
 
 #: Tag: the digest of the code a run was trained by (:func:`code_digest`).
@@ -58,6 +59,7 @@ class NoFingerprint(Exception):
 def update_fingerprint(algo: Mapping) -> list[float]:
     """The fingerprint of ``algo`` (a run's ``algo`` config) under today's code (cached)."""
     algo = OmegaConf.to_container(algo, resolve=True) if OmegaConf.is_config(algo) else dict(algo)
+    algo = declared_since(algo) | algo  # a run from before a hyperparameter: its default's update
     for key in ("compile", "capture"):  # the same maths, compiled: not part of what it computes
         if key in algo:
             algo[key] = False

@@ -19,8 +19,7 @@ import math
 from omegaconf import DictConfig, OmegaConf
 
 from walkers import tracking
-from walkers.agents.declarations.hyperparameters import defaults
-from walkers.agents.declarations.schemas import schema_of
+from walkers.agents.declarations.schemas import declared_since
 from walkers.errors import CheckpointError, ConfigError
 from walkers.seeding import restore_torch_rng
 from walkers.tracking import differing_keys, flatten
@@ -87,10 +86,7 @@ def _fill_hyperparameters_declared_since(algo: DictConfig, run_id: str) -> None:
     """A hyperparameter declared after the run was made (PPO's ``num_envs``, say) takes its
     declared default, which is the behaviour the run had before it existed; logged, so that
     the resumed run says what it was not told."""
-    schema = schema_of(algo.get("_target_", ""))
-    if schema is None:
-        return
-    added = {k: v for k, v in defaults(schema).items() if k not in algo}
+    added = declared_since(algo)
     for key, value in added.items():
         algo[key] = value
     if added:

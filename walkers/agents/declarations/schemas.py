@@ -8,6 +8,7 @@ here.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 from walkers.agents.common.networks import CRITIC_ARCHITECTURES
@@ -28,6 +29,7 @@ from walkers.agents.declarations.hyperparameters import (
     PROBABILITY,
     Allowed,
     Hyperparameters,
+    defaults,
     hp,
     one_of,
     or_null,
@@ -522,3 +524,13 @@ def schema_of(target: str) -> type[Hyperparameters] | None:
     """The declaration of the agent class ``target`` (an ``algo._target_``); None for a class
     walkers does not declare."""
     return next((schema for schema in SCHEMAS.values() if schema.AGENT == target), None)
+
+
+def declared_since(algo: Mapping) -> dict:
+    """The hyperparameters declared after ``algo`` (a run's stored ``algo`` config) was made,
+    each with its declared default: the behaviour the run had before it existed (a resume and
+    the check of a reference's update both take them so)."""
+    schema = schema_of(algo.get("_target_", ""))
+    if schema is None:
+        return {}
+    return {k: v for k, v in defaults(schema).items() if k not in algo}

@@ -8,10 +8,14 @@ from __future__ import annotations
 import os
 import subprocess
 
+import pytest
 import yaml
 
 from walkers import PROJECT_ROOT
 from walkers.tracking import bundles
+
+#: Two tiny populations in bash: end to end, so `make test-slow` (CI runs it after `make test`).
+pytestmark = pytest.mark.slow
 
 TINY = "eval_every=500 eval_episodes=2 algo.learning_starts=200 algo.batch_size=32"
 

@@ -27,6 +27,7 @@ DEADLINE=${DEADLINE:-440}
 DEVICE=${DEVICE:-cuda}
 EXTRA=${EXTRA:-}
 WORK=$(mktemp -d)  # stores, checkpoints and Hydra's folders: only the pages travel
+trap 'rm -rf "$WORK"' EXIT  # however the call ends
 mkdir -p "$OUT/results"
 if [[ ${SETUP:-1} == 1 ]]; then
   bash benchmarks/device_venv.sh > "$OUT/setup.log" 2>&1 || { tail -20 "$OUT/setup.log"; exit 1; }
@@ -50,7 +51,7 @@ train() {  # train ALGO ENV: its 3 seeds as one population, into a store of its 
     algo="$algo" env="$env" population=3 seed=0 total_steps="$STEPS" device="$DEVICE" torch_threads=2 \
     progress=false "job_key='baseline/$algo/\${env.id}/{seed}'" \
     "tracking.run_name='baseline-$algo-\${env.id}-s{seed}'" tracking.experiment="baseline_$algo" \
-    tracking.uri="sqlite:///$WORK/$name.db" work_dir="$WORK/work" ${EXTRA:-} > "$OUT/$name.log" 2>&1
+    tracking.uri="sqlite:///$WORK/$name.db" work_dir="$WORK/work" $EXTRA > "$OUT/$name.log" 2>&1
   local rc=$?
   case $rc in
     0) echo "$name: trained in ${SECONDS}s" ;;
@@ -85,5 +86,4 @@ for pair in "${todo[@]}"; do
   name=${pair%%:*}_${pair##*:}_$steps_k
   echo "=== $name"; grep -E "final/return_last10|ended|error" "$OUT/$name.log" | tail -4
 done
-rm -rf "$WORK"
 cat "$OUT/summary.txt" 2>/dev/null

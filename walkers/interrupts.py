@@ -12,6 +12,12 @@ included, then waits out sqlite's busy timeout and the run's store patience (see
 SIGTERM'd run still ending 3 minutes later; a study's KILLED writes failing "database is
 locked"). Inside :func:`shielded` the signal is only noted; it is raised as soon as the call is
 over. :class:`walkers.tracking.client.StoreClient` shields every call it makes.
+
+A Hydra config composition is the third place: a KeyboardInterrupt raised inside OmegaConf while
+it builds a node comes out as a ConfigCompositionException (OmegaConf wraps what its half-built
+node raises next), so a sweep's driver stopped between two jobs ended 1 and FAILED instead of 130
+and KILLED. :class:`ShieldedConfigLoader` composes shielded; walkers' sweepers hand it to their
+launchers (:mod:`walkers.plugins`).
 """
 
 from __future__ import annotations
@@ -61,6 +67,28 @@ def shielded() -> Iterator[None]:
         if _depth == 0 and _noted is not None:
             reason, _noted = _noted, None
             raise KeyboardInterrupt(reason)
+
+
+class ShieldedConfigLoader:
+    """Hydra's config loader, whose compositions (a sweep's jobs', one by one) a stop signal
+    waits for (:func:`shielded`); everything else is the loader's own. It pickles with its
+    loader, as a cluster launcher sends it to its workers."""
+
+    def __init__(self, loader) -> None:
+        self.loader = loader
+
+    def load_configuration(self, *args, **kwargs):
+        with shielded():
+            return self.loader.load_configuration(*args, **kwargs)
+
+    def load_sweep_config(self, *args, **kwargs):
+        with shielded():
+            return self.loader.load_sweep_config(*args, **kwargs)
+
+    def __getattr__(self, name: str):
+        if name.startswith("__") or name == "loader":  # pickle's lookups before __dict__ is set
+            raise AttributeError(name)
+        return getattr(self.loader, name)
 
 
 class _Stopping:

@@ -204,6 +204,37 @@ def test_the_same_export_again_says_how_to_write_it_anew_and_replace_true_does(s
     assert sorted(p.name for p in tmp_path.iterdir()) == ["again"]  # no staging left beside it
 
 
+def test_a_bundle_written_anew_by_later_code_keeps_the_fingerprints_of_untouched_runs(
+    studied, tmp_path
+):
+    """Runs whose update today's code cannot fingerprint (another code digest trained them) keep
+    the fingerprint their earlier bundle recorded when it is written anew, so they still stand as
+    references; a run trained on since then loses it (it may be another update's now)."""
+    from walkers.agents.fingerprint import CODE_DIGEST_TAG
+    from walkers.tracking.names import LOGGED_THROUGH_TAG
+
+    _, bundle, _ = studied
+    elsewhere = new_store(tmp_path)  # the runs as trained by an older commit, in its store
+    assert ingest(elsewhere, bundle).returncode == 0
+    jobs = [r for r in all_runs(elsewhere["client"]) if r.data.tags.get("walkers.job_key")]
+    for run in jobs:
+        elsewhere["client"].delete_tag(run.info.run_id, bundles.FINGERPRINT_TAG)
+        elsewhere["client"].set_tag(run.info.run_id, CODE_DIGEST_TAG, "an-older-commit")
+    trained_on = jobs[0]
+    elsewhere["client"].set_tag(trained_on.info.run_id, LOGGED_THROUGH_TAG, "999999")
+    out = tmp_path / "results"
+    shutil.copytree(bundle, out)
+
+    again = export(elsewhere, "study=t", f"out={out}", "replace=true")
+
+    assert again.returncode == 0, again.stderr[-2000:]
+    kept = {r["origin"]: r["fingerprint"] for r in bundles.read_bundle(out)["runs"]}
+    earlier = {r["origin"]: r["fingerprint"] for r in bundles.read_bundle(bundle)["runs"]}
+    origin = trained_on.data.tags[bundles.ORIGIN_TAG]
+    assert kept.pop(origin) is None and earlier.pop(origin)
+    assert kept == earlier and len([f for f in kept.values() if f]) == len(jobs) - 1
+
+
 @pytest.mark.parametrize(
     ("args", "expected"),
     [

@@ -55,6 +55,7 @@ from walkers.tracking.names import (
     JOB_KEY_TAG,
     KILLED,
     KIND_TAG,
+    LOGGED_THROUGH_TAG,
     ORIGIN_TAG,
     STUDY_KIND,
     STUDY_TAG,
@@ -139,11 +140,13 @@ def export_runs(
 
     Written beside ``out`` first and renamed into place: an export that fails or is stopped
     leaves no half-written bundle. ``fingerprint(tags, config)``: the update's fingerprint of a
-    run (:mod:`walkers.agents.fingerprint`), kept with it where the run has none yet."""
+    run (:mod:`walkers.agents.fingerprint`), kept with it where the run has none yet; where it
+    cannot be had (today's code did not train the run) the earlier bundle's is kept."""
     out = Path(out)
     earlier_bundle = (out / RUNS_FILE).is_file()
-    if replace and earlier_bundle:
-        pass  # swapped below, once the new one is whole
+    recorded: dict[str, dict] = {}
+    if replace and earlier_bundle:  # swapped below, once the new one is whole
+        recorded = _recorded_fingerprints(out)
     elif earlier_bundle:
         raise ConfigError(
             f"out={str(out)!r} holds a bundle already: pass replace=true to write it anew, or "
@@ -159,6 +162,9 @@ def export_runs(
         staging = Path(tmp) / "bundle"
         staging.mkdir()
         records = [_run_record(client, run, staging, checkpoints, fingerprint) for run in runs]
+        for record in records:
+            if not record["fingerprint"]:
+                record["fingerprint"] = _same_training(record, recorded.get(record["origin"]))
         document = {
             "format": FORMAT,
             "version": VERSION,
@@ -199,6 +205,31 @@ def _run_record(client, run, staging: Path, checkpoints: bool, fingerprint) -> d
     if checkpoints:
         record["artifacts"] = _copy_checkpoints(client, info.run_id, staging, record["origin"])
     return record
+
+
+def _recorded_fingerprints(out: Path) -> dict[str, dict]:
+    """The earlier bundle's runs that carry a fingerprint, by origin (an unreadable earlier
+    bundle gives none: it is replaced whole)."""
+    try:
+        runs = read_bundle(out)["runs"]
+    except ConfigError:
+        return {}
+    return {record["origin"]: record for record in runs if record.get("fingerprint")}
+
+
+def _same_training(record: dict, earlier: dict | None) -> list[float] | None:
+    """The earlier record's fingerprint, recorded by the code that trained the run, if the run
+    has not been trained since (the same end, status and steps logged): an export by later code
+    must not lose it, and a run trained on (by other code, maybe) must not keep it."""
+    if earlier is None:
+        return None
+    logged = LOGGED_THROUGH_TAG
+    untouched = (
+        record["end_time"] == earlier.get("end_time")
+        and record["status"] == earlier.get("status")
+        and record["tags"].get(logged) == earlier["tags"].get(logged)
+    )
+    return earlier["fingerprint"] if untouched else None
 
 
 def _text_artifact(client, run_id: str, name: str) -> str | None:

@@ -120,7 +120,7 @@ bench-sequential: $(STAMP)  ## the A/B study's stopping rule by simulation: fami
 bench-scale: $(STAMP)  ## a seed study through joblib vs a loopback Ray cluster of 1 and 2 workers; the study and a sweep with N workers on paper
 	$(PY) benchmarks/bench_scale.py $(ARGS)
 
-docs: $(STAMP)  ## the documentation site (MkDocs, Material) with --strict into site/: a broken link or a missing page fails; its results pages from results/
+docs: $(STAMP)  ## the documentation site (MkDocs, Material) with --strict into site/: a broken link or a missing page fails; its results pages from results/, its home page from README.md
 	$(PY) -m walkers.results --docs docs >/dev/null
 	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict -q
 

@@ -7,11 +7,16 @@ bundle by ``walkers.compare``, never by hand, so that its numbers cannot drift f
 anew: the bundle is imported into a temporary store and compared there.
 
     python -m walkers.results tiny          # or: make results
-    python -m walkers.results --docs docs   # the docs site's results pages (make docs)
+    python -m walkers.results --docs docs   # the docs site's results pages and home (make docs)
+
+The site's home page is the README too, written at the same time with its links made the site's
+(:func:`write_home`): a copy kept by hand drifted from it (its results table stopped at two pages
+and its algorithm table lacked TD7).
 """
 
 from __future__ import annotations
 
+import re
 import shutil
 import sys
 import tempfile
@@ -102,13 +107,40 @@ def write_docs(docs: Path) -> list[Path]:
     return [root / "index.md", *written]
 
 
+#: README links -> the site's: a docs page, a report (whose site page is index.md) and a page.yaml.
+_SITE_LINKS = (
+    (re.compile(r"\]\(docs/"), "]("),
+    (re.compile(r"\]\((results/[^/)]+)/report/([^/)]+)/report\.md\)"), r"](\1/\2/index.md)"),
+    (re.compile(r"\]\((results/[^/)]+)/page\.yaml\)"), r"](\1/index.md)"),
+)
+#: The README's pointer to the site, which on the site itself says where it comes from.
+_README_POINTER = re.compile(r"^The full guide is the documentation site in .*$", re.M)
+
+
+def write_home(docs: Path, readme: Path = PROJECT_ROOT / "README.md") -> Path:
+    """The site's home page (``docs/index.md``): the README, its links rewritten for the site.
+    Needs the results pages (:func:`write_docs`) that its results table links to."""
+    text = readme.read_text()
+    for pattern, replacement in _SITE_LINKS:
+        text = pattern.sub(replacement, text)
+    text = _README_POINTER.sub(
+        "This site is built from `docs/` and the README by `make docs`; the README is its home "
+        "page, written here unchanged but for its links.",
+        text,
+    )
+    home = Path(docs) / "index.md"
+    home.write_text(text)
+    return home
+
+
 #: What a results page says of itself, from its ``page.yaml``.
 FACTS = ("study", "budget", "machine", "command", "commit", "date")
 
 
 def main(argv: list[str]) -> int:
     if argv[:1] == ["--docs"]:
-        for path in write_docs(Path(argv[1] if len(argv) > 1 else "docs")):
+        docs = Path(argv[1] if len(argv) > 1 else "docs")
+        for path in [*write_docs(docs), write_home(docs)]:
             print(path)
         return 0
     names = argv or pages()

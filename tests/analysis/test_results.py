@@ -4,10 +4,13 @@ the digit (``python -m walkers.results`` writes them; nothing there is typed by 
 from __future__ import annotations
 
 import json
+import re
+import shutil
 
 import pytest
 
-from walkers.results import RESULTS_DIR, pages, write_page
+from tests.conftest import PROJECT_ROOT
+from walkers.results import RESULTS_DIR, pages, write_docs, write_home, write_page
 
 
 @pytest.mark.parametrize("name", pages())
@@ -32,3 +35,23 @@ def test_an_unknown_page_is_refused_in_one_line():
     with pytest.raises(ConfigError) as refused:
         write_page("nope")
     assert str(refused.value).startswith(f"results='nope' is not allowed: one of {pages()[0]}")
+
+
+def test_the_sites_home_is_the_readme_with_every_link_reaching_a_site_page(tmp_path):
+    """``make docs`` writes the site's home from the README (a hand-kept copy drifted): the same
+    text, and each of its links a page the site holds, a results report included."""
+    docs = tmp_path / "docs"
+    shutil.copytree(PROJECT_ROOT / "docs", docs, ignore=shutil.ignore_patterns("results"))
+    (docs / "index.md").unlink(missing_ok=True)  # the one make docs wrote, if it ran here
+    write_docs(docs)
+    home = write_home(docs).read_text()
+
+    readme = (PROJECT_ROOT / "README.md").read_text()
+    links = re.findall(r"\]\(([^)#]+)(?:#[^)]*)?\)", home)
+    assert len(links) == len(re.findall(r"\]\(([^)#]+)(?:#[^)]*)?\)", readme)) > 20
+    missing = [
+        link for link in links if not link.startswith("http") and not (docs / link).is_file()
+    ]
+    assert not missing, f"README links with no page on the site: {missing}"
+    strip = re.compile(r"\]\([^)]*\)")  # the text, links aside, is the README's
+    assert strip.sub("]", home).splitlines()[10:] == strip.sub("]", readme).splitlines()[10:]

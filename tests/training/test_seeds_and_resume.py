@@ -205,3 +205,39 @@ def test_a_run_from_before_a_hyperparameter_existed_resumes_with_its_declared_de
     (run,) = all_runs(store["client"])
     assert run.info.status == "FINISHED"
     assert _final_state(store, run.info.run_id)["trainer"]["step"] == 900
+
+
+def test_a_run_resumed_by_other_update_code_no_longer_stands_as_a_reference(store, tmp_path):
+    """A run whose earlier steps another walkers.agents/walkers.data trained (its code digest
+    tag is not today's) records both digests when resumed, says so in one line, and its export
+    carries no update fingerprint, so a comparison refuses it as a reference arm."""
+    from walkers.agents.fingerprint import CODE_DIGEST_TAG, code_digest
+    from walkers.analysis.references import check_like_for_like, load_references
+    from walkers.errors import ConfigError
+    from walkers.tracking import bundles
+
+    first = run_cli(["algo=td3", "env=pendulum", *TINY, *store["overrides"]], cwd=store["path"])
+    assert first.returncode == 0, first.stderr[-2000:]
+    (run,) = all_runs(store["client"])
+    store["client"].set_tag(run.info.run_id, CODE_DIGEST_TAG, "0lderc0de")  # trained before
+    resumed = run_cli(
+        [f"resume={run.info.run_id}", "total_steps=900", *store["overrides"]], cwd=store["path"]
+    )
+    assert resumed.returncode == 0, resumed.stderr[-2000:]
+    said = f"code digests 0lderc0de then {code_digest()}): its results stand, but it cannot"
+    assert said in resumed.stdout + resumed.stderr
+    (run,) = all_runs(store["client"])
+    assert run.info.status == "FINISHED"
+    assert run.data.tags[CODE_DIGEST_TAG] == f"0lderc0de+{code_digest()}"
+
+    exported = run_cli(
+        ["tracking.experiment=walkers", f"out={tmp_path / 'b'}", *store["overrides"][:1]],
+        cwd=store["path"],
+        module="walkers.export",
+    )
+    assert exported.returncode == 0, exported.stderr[-2000:]
+    (record,) = bundles.read_bundle(tmp_path / "b")["runs"]
+    assert record["fingerprint"] is None
+    (reference,) = load_references([tmp_path / "b"])
+    with pytest.raises(ConfigError, match="carries no update fingerprint"):
+        check_like_for_like(reference, "Pendulum-v1", "final/return_mean", None, None)

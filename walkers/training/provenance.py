@@ -8,6 +8,7 @@ import functools
 import socket
 import subprocess
 import sys
+from collections.abc import Mapping
 from importlib import metadata
 
 from omegaconf import DictConfig, OmegaConf
@@ -53,6 +54,17 @@ def new_run_tags(cfg: DictConfig, x_axis: str, data=None) -> dict[str, str]:
     if cfg.job_key:
         tags[tracking.JOB_KEY_TAG] = cfg.job_key
     return tags
+
+
+def resumed_code_tags(tags_before: Mapping[str, str]) -> dict[str, str]:
+    """The code-digest tag of a run resumed by this process: unchanged when this code trained it
+    before, else every digest that trained it, joined by ``+`` (``a+b``). Such a run's update can
+    no longer be fingerprinted by one code, so it cannot stand as a reference arm: an export
+    records no fingerprint for it (:func:`walkers.agents.fingerprint.of_run`)."""
+    before, now = tags_before.get(CODE_DIGEST_TAG), code_digest()
+    if before is None or now in before.split("+"):
+        return {}
+    return {CODE_DIGEST_TAG: f"{before}+{now}"}
 
 
 def package_versions() -> str:

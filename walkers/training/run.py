@@ -32,6 +32,7 @@ from walkers.training.provenance import (
     WORKER_TAG,
     dataset_params,
     new_run_tags,
+    resumed_code_tags,
     run_name,
     shareable,
     trial_tags,
@@ -39,6 +40,21 @@ from walkers.training.provenance import (
 )
 
 log = logging.getLogger("walkers")
+
+
+def _mixed_code(client, run_id: str) -> dict[str, str]:
+    """The resumed run's code-digest tag where other update code trained it before (said in
+    one line: it can no longer stand as a reference arm)."""
+    tags = resumed_code_tags(client.get_run(run_id).data.tags)
+    if tags:
+        log.warning(
+            "run %s continues under other update code than trained it so far (walkers.agents "
+            "or walkers.data changed: code digests %s): its results stand, but it cannot serve "
+            "as a reference arm (no update fingerprint)",
+            run_id,
+            " then ".join(next(iter(tags.values())).split("+")),
+        )
+    return tags
 
 
 @dataclass(frozen=True)
@@ -109,8 +125,8 @@ class TrainingRun:
         """
         tags = (extra_tags or {}) | trial_tags(cfg)
         if cfg.resume:
+            tags |= {WORKER_TAG: worker_name()} | _mixed_code(client, cfg.resume)
             tracker = tracking.Tracker.reopen(client, cfg.resume, ".", resumed_training=True)
-            tags |= {WORKER_TAG: worker_name()}
         else:
             tags = new_run_tags(cfg, axis.name, data) | tags
             tracker = tracking.Tracker.start(

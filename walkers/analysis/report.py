@@ -288,7 +288,7 @@ def markdown(c: Comparison, source: str) -> str:
         "## Per arm",
         "",
         f"| arm | seeds | {c.score} mean ± std | IQM [{level} CI] | AUC mean ± std "
-        "| steps to threshold (median) | seeds reaching it | CPU-hours |",
+        "| steps to threshold (median) | seeds reaching it | CPU-hours, seeds summed |",
         "|---|---|---|---|---|---|---|---|",
     ]
     for r in c.algos:
@@ -350,7 +350,8 @@ def markdown(c: Comparison, source: str) -> str:
             "checked like for like (env, evaluation protocol, budget, and the update's "
             "fingerprint under today's code).",
             "",
-            "| bundle | arms | runs | from | commits | packages | devices | CPU-hours |",
+            "| bundle | arms | runs | from | commits | packages | devices "
+            "| CPU-hours, runs summed |",
             "|---|---|---|---|---|---|---|---|",
         ]
         for ref in c.references:

@@ -209,7 +209,7 @@ def write_suite(comparisons, tasks: dict[str, Task], cfg: DictConfig, out: Path,
         "",
         "## Aggregates (normalized)",
         "",
-        *_header("arm", [*suite.AGGREGATES, "runs", "CPU-hours"]),
+        *_header("arm", [*suite.AGGREGATES, "runs", "CPU-hours, runs summed"]),
     ]
     for arm, agg in aggregates.items():
         cells = [_ci(*v) for v in agg.values()]

@@ -46,13 +46,13 @@ def _mixed_code(client, run_id: str) -> dict[str, str]:
     """The resumed run's code-digest tag where other update code trained it before (said in
     one line: it can no longer stand as a reference arm)."""
     tags = resumed_code_tags(client.get_run(run_id).data.tags)
-    if tags:
+    for digests in tags.values():
         log.warning(
             "run %s continues under other update code than trained it so far (walkers.agents "
             "or walkers.data changed: code digests %s): its results stand, but it cannot serve "
             "as a reference arm (no update fingerprint)",
             run_id,
-            " then ".join(next(iter(tags.values())).split("+")),
+            digests.replace("+", " then "),
         )
     return tags
 

@@ -95,6 +95,9 @@ bench-gpu: $(STAMP)  ## the prepared script for a lent GPU, under 5 minutes: the
 	timeout 180 $(PY) benchmarks/bench_throughput.py --device cuda --only "TD3,SAC,PPO" --population 1,5,16 --reps 2 --steps 200
 	timeout 30 $(PY) benchmarks/bench_dt.py --devices cuda --reps 2 --steps 10
 
+offline-gpu:  ## on a lent GPU: Decision Transformer seeds 0-2 on a dataset carried in .walkers/datasets (DATASET=walkers/walker2d/medium-v0), side by side, the finished ones a bundle in $$OUT/bundles for walkers.ingest here (benchmarks/device_offline.sh; sets itself up from .whl/)
+	bash benchmarks/device_offline.sh
+
 baselines-gpu:  ## on a lent GPU: the next off-policy 100k baselines results/ lacks, 3 seeds as one captured population each, 4 side by side, each finished one a results page in $$OUT/results (benchmarks/device_baselines.sh; sets itself up from .whl/)
 	bash benchmarks/device_baselines.sh
 
@@ -146,4 +149,4 @@ clean:  ## remove run outputs (mlflow.db, mlartifacts/, outputs/, multirun/, .wa
 	rm -rf mlflow.db mlruns mlartifacts outputs multirun .walkers reports .pytest_cache .ruff_cache
 	find . -name __pycache__ -type d -prune -not -path './$(VENV)/*' -exec rm -rf {} +
 
-.PHONY: help install train ab ab-all study baseline baselines-gpu offline compare plan results docs dashboard bench-sequential ui-check test test-slow test-faults test-cluster chaos stack bench bench-throughput bench-dt bench-learning bench-scale menus lint ui clean
+.PHONY: help install train ab ab-all study baseline baselines-gpu offline-gpu offline compare plan results docs dashboard bench-sequential ui-check test test-slow test-faults test-cluster chaos stack bench bench-throughput bench-dt bench-learning bench-scale menus lint ui clean

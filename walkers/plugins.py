@@ -13,10 +13,11 @@ config loader whose compositions a stop signal waits for
 from __future__ import annotations
 
 import dataclasses
+import sys
 from typing import Any
 
 from hydra.plugins.sweeper import Sweeper
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from walkers.interrupts import ShieldedConfigLoader
 
@@ -55,6 +56,10 @@ class PruningOptunaSweeper(_Deferred):
         super().__init__(OptunaStudySweeper(**settings))
 
 
+#: the stores whose schema MLflow migrates from the client (a server migrates its own)
+DATABASES = {"sqlite", "postgresql", "mysql", "mssql"}
+
+
 class PlainSweeper(_Deferred):
     """A plain multirun (``-m a=1,2``): Hydra's own basic sweeper with the stop-safe config
     loader every walkers sweeper gets (``conf/hydra/sweeper/basic.yaml`` stands in for Hydra's
@@ -64,3 +69,25 @@ class PlainSweeper(_Deferred):
         from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
 
         super().__init__(BasicSweeper(**settings))
+
+    def setup(self, *, hydra_context, task_function, config: DictConfig) -> None:
+        super().setup(hydra_context=hydra_context, task_function=task_function, config=config)
+        self.store = OmegaConf.select(
+            config, "tracking.uri", default=None, throw_on_resolution_failure=False
+        )
+
+    def sweep(self, arguments: list[str]) -> Any:
+        if isinstance(self.store, str) and self.store.split(":")[0].split("+")[0] in DATABASES:
+            # A new database store's schema is made here, once, before the jobs: jobs launched
+            # together (joblib) into a sqlite store nobody had opened each ran MLflow's
+            # migrations, and all but one failed (3 of 4 on 2 cores). The study and Optuna
+            # sweepers open their store first too. An unusable store is one line here.
+            from walkers import tracking
+            from walkers.errors import ConfigError
+
+            try:
+                tracking.connect(self.store)
+            except ConfigError as e:
+                print(f"error: {e}", file=sys.stderr)
+                sys.exit(2)
+        return super().sweep(arguments)

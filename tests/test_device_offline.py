@@ -1,0 +1,119 @@
+"""benchmarks/device_offline.sh, the offline call of a lent GPU, tried on the CPU: DT's seeds on a
+dataset made here train side by side, the finished ones come home as one bundle, and that bundle
+ingested into the study's store makes the same keyed command there train nothing."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+
+import pytest
+
+from tests.conftest import all_runs, new_store, run_cli, tiny
+from walkers import PROJECT_ROOT
+from walkers.tracking import bundles
+
+#: End to end in bash: `make test-slow` (CI runs it after `make test`).
+pytestmark = pytest.mark.slow
+
+DATASET = "walkers/pendulum/random-v0"
+STEPS, EVERY = 40, 20
+EXTRA = " ".join([*tiny("dt"), "eval_episodes=1", "log_every=10"])
+
+
+@pytest.fixture
+def minari_path(tmp_path):
+    """A small dataset of uniform random Pendulum episodes, as `walkers.collect` writes it."""
+    path = tmp_path / "datasets"
+    made = run_cli(
+        [
+            "run_id=random",
+            "env=pendulum",
+            "episodes=4",
+            "random_episodes=2",
+            f"dataset={DATASET}",
+            "log_to_mlflow=false",
+        ],
+        cwd=tmp_path,
+        module="walkers.collect",
+        env_overrides={"MINARI_DATASETS_PATH": str(path)},
+    )
+    assert made.returncode == 0, made.stderr[-2000:]
+    return path
+
+
+def run_script(tmp_path, minari_path, deadline: int = 400):
+    env = {
+        **os.environ,
+        "OUT": str(tmp_path / "out"),
+        "MINARI_DATASETS_PATH": str(minari_path),
+        "DATASET": DATASET,
+        "ENV": "pendulum",
+        "SEEDS": "0,1",
+        "STEPS": str(STEPS),
+        "EVERY": str(EVERY),
+        "EXPERIMENT": "offline_pendulum",
+        "DEVICE": "cpu",
+        "SETUP": "0",
+        "DEADLINE": str(deadline),
+        "EXTRA": EXTRA,
+    }
+    return subprocess.run(
+        ["bash", "benchmarks/device_offline.sh"],
+        cwd=PROJECT_ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+
+
+def test_the_finished_seeds_come_home_and_count_as_done_in_the_studys_store(tmp_path, minari_path):
+    done = run_script(tmp_path, minari_path)
+
+    assert done.returncode == 0, done.stdout + done.stderr
+    name = "dt_walkers_pendulum_random"
+    assert f"{name}: bundle in" in done.stdout, done.stdout
+    document = bundles.read_bundle(tmp_path / "out" / "bundles" / name)
+    keys = sorted(r["tags"]["walkers.job_key"] for r in document["runs"])
+    assert keys == [f"offline/dt/{DATASET}/0", f"offline/dt/{DATASET}/1"]
+    assert {r["status"] for r in document["runs"]} == {"FINISHED"}
+
+    home = tmp_path / "home"
+    home.mkdir()
+    store = new_store(home)
+    ingested = run_cli(
+        [f"bundle={tmp_path / 'out' / 'bundles' / name}", f"tracking.uri={store['uri']}"],
+        cwd=home,
+        module="walkers.ingest",
+    )
+    assert ingested.returncode == 0, ingested.stderr[-2000:]
+    rerun = run_cli(  # the keyed command of docs/offline.md, here, on the study's store
+        [
+            "-m",
+            "algo=dt",
+            "env=pendulum",
+            f"dataset={DATASET}",
+            "seed=0,1",
+            f"total_steps={STEPS}",
+            f"eval_every={EVERY}",
+            f"checkpoint_every={EVERY}",
+            "job_key=offline/dt/${dataset}/${seed}",
+            "tracking.experiment=offline_pendulum",
+            *store["overrides"],
+            *EXTRA.split(),
+        ],
+        cwd=home,
+        env_overrides={"MINARI_DATASETS_PATH": str(minari_path)},
+    )
+    assert rerun.returncode == 0, rerun.stderr[-2000:]
+    assert len(all_runs(store["client"])) == 2  # the two imported runs, nothing trained again
+
+
+def test_a_seed_stopped_at_the_deadline_stays_on_the_machine(tmp_path, minari_path):
+    done = run_script(tmp_path, minari_path, deadline=1)
+
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "stopped at the deadline" in done.stdout
+    assert "nothing finished" in done.stdout
+    assert not (tmp_path / "out" / "bundles" / "dt_walkers_pendulum_random").exists()

@@ -192,6 +192,21 @@ runpy.run_module("walkers.train", run_name="__main__")
 """
 
 
+def run_device_script(script: str, tmp_path: Path, **settings: str) -> subprocess.CompletedProcess:
+    """``bash benchmarks/SCRIPT`` as a lent GPU's call runs it, tried on the CPU: its settings
+    by environment variable, with ``DEVICE=cpu``, ``SETUP=0`` (no wheels to install) and
+    ``OUT`` in ``tmp_path``."""
+    env = {**os.environ, "OUT": str(tmp_path / "out"), "DEVICE": "cpu", "SETUP": "0", **settings}
+    return subprocess.run(
+        ["bash", f"benchmarks/{script}"],
+        cwd=PROJECT_ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+
+
 def run_cli_signalled_inside_an_update(
     args: list[str], cwd: Path, after_adam_steps: int, sig: int = 2, env_overrides=None
 ) -> subprocess.CompletedProcess:

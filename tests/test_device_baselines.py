@@ -5,13 +5,10 @@ stopped."""
 
 from __future__ import annotations
 
-import os
-import subprocess
-
 import pytest
 import yaml
 
-from walkers import PROJECT_ROOT
+from tests.conftest import run_device_script
 from walkers.tracking import bundles
 
 #: Two tiny populations in bash: end to end, so `make test-slow` (CI runs it after `make test`).
@@ -21,25 +18,15 @@ TINY = "eval_every=500 eval_episodes=2 algo.learning_starts=200 algo.batch_size=
 
 
 def run_script(tmp_path, pairs: str, steps: int = 1000, deadline: int = 400):
-    env = {
-        **os.environ,
-        "OUT": str(tmp_path / "out"),
-        "RESULTS": str(tmp_path / "results"),
-        "PAIRS": pairs,
-        "JOBS": "2",
-        "STEPS": str(steps),
-        "DEVICE": "cpu",
-        "SETUP": "0",
-        "DEADLINE": str(deadline),
-        "EXTRA": TINY,
-    }
-    return subprocess.run(
-        ["bash", "benchmarks/device_baselines.sh"],
-        cwd=PROJECT_ROOT,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=600,
+    return run_device_script(
+        "device_baselines.sh",
+        tmp_path,
+        RESULTS=str(tmp_path / "results"),
+        PAIRS=pairs,
+        JOBS="2",
+        STEPS=str(steps),
+        DEADLINE=str(deadline),
+        EXTRA=TINY,
     )
 
 

@@ -4,13 +4,9 @@ ingested into the study's store makes the same keyed command there train nothing
 
 from __future__ import annotations
 
-import os
-import subprocess
-
 import pytest
 
-from tests.conftest import all_runs, new_store, run_cli, tiny
-from walkers import PROJECT_ROOT
+from tests.conftest import all_runs, new_store, run_cli, run_device_script, tiny
 from walkers.tracking import bundles
 
 #: End to end in bash: `make test-slow` (CI runs it after `make test`).
@@ -43,28 +39,18 @@ def minari_path(tmp_path):
 
 
 def run_script(tmp_path, minari_path, deadline: int = 400):
-    env = {
-        **os.environ,
-        "OUT": str(tmp_path / "out"),
-        "MINARI_DATASETS_PATH": str(minari_path),
-        "DATASET": DATASET,
-        "ENV": "pendulum",
-        "SEEDS": "0,1",
-        "STEPS": str(STEPS),
-        "EVERY": str(EVERY),
-        "EXPERIMENT": "offline_pendulum",
-        "DEVICE": "cpu",
-        "SETUP": "0",
-        "DEADLINE": str(deadline),
-        "EXTRA": EXTRA,
-    }
-    return subprocess.run(
-        ["bash", "benchmarks/device_offline.sh"],
-        cwd=PROJECT_ROOT,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=600,
+    return run_device_script(
+        "device_offline.sh",
+        tmp_path,
+        MINARI_DATASETS_PATH=str(minari_path),
+        DATASET=DATASET,
+        ENV="pendulum",
+        SEEDS="0,1",
+        STEPS=str(STEPS),
+        EVERY=str(EVERY),
+        EXPERIMENT="offline_pendulum",
+        DEADLINE=str(deadline),
+        EXTRA=EXTRA,
     )
 
 

@@ -13,7 +13,6 @@ config loader whose compositions a stop signal waits for
 from __future__ import annotations
 
 import dataclasses
-import sys
 from typing import Any
 
 from hydra.plugins.sweeper import Sweeper
@@ -83,11 +82,7 @@ class PlainSweeper(_Deferred):
             # migrations, and all but one failed (3 of 4 on 2 cores). The study and Optuna
             # sweepers open their store first too. An unusable store is one line here.
             from walkers import tracking
-            from walkers.errors import ConfigError
+            from walkers.cli import or_exit
 
-            try:
-                tracking.connect(self.store)
-            except ConfigError as e:
-                print(f"error: {e}", file=sys.stderr)
-                sys.exit(2)
+            or_exit(tracking.connect, self.store)
         return super().sweep(arguments)

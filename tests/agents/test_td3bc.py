@@ -29,6 +29,7 @@ from walkers.agents.td3 import TD3
 from walkers.agents.td3bc import TD3BC
 from walkers.analysis.comparison import compare
 from walkers.analysis.suite_report import compare_datasets, compare_suite
+from walkers.data import datasets
 from walkers.data.datasets import OfflineData
 from walkers.data.episodes import Episode
 from walkers.data.replay import Batch
@@ -466,3 +467,70 @@ def test_a_suite_of_datasets_aggregates_the_offline_arms_across_them(chain, tmp_
     with pytest.raises(ConfigError, match=r"^envs= and datasets= are not allowed together"):
         both = [*suite_cli, "envs=[pendulum,hopper]", f"datasets=[{DATASET},{SECOND}]"]
         compare_suite(compose_cfg(both, config_name="compare"))
+
+
+REBUILT = "walkers/pendulum/rebuilt-v0"
+
+
+def test_a_dataset_rebuilt_under_its_name_is_not_compared_with_its_first_build(chain, tmp_path):
+    """A dataset's name does not say which data it holds: a rebuild by other runs (or on
+    another CPU) keeps it. Seed 0 learns from a first build, seed 1 from a rebuild of other
+    episodes under the same name: seed 0 does not resume on the rebuild, and the report refuses
+    the two in one line naming both builds and which runs learned from each, and writes
+    nothing. Each run records its data's digest; the same data collected again has the same
+    one, and seed 0 then resumes."""
+    experiment = ["tracking.experiment=rebuilt", *chain["overrides"]]
+    client = chain["client"]
+
+    def build(episodes: int) -> str:
+        collect(
+            compose_cfg(
+                ["run_id=random", "env=pendulum", f"episodes={episodes}", "random_episodes=2",
+                 f"dataset={REBUILT}", "overwrite=true", "log_to_mlflow=false", *experiment],
+                config_name="collect",
+            )
+        )  # fmt: skip
+        return datasets.load(REBUILT).digest
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("MINARI_DATASETS_PATH", str(chain["path"] / "minari"))
+        first = build(episodes=2)
+        train(compose_cfg([*TD3BC_RUN, f"dataset={REBUILT}", "seed=0", *experiment]))
+        (seed0,) = [r for r in all_runs(client) if r.data.tags.get("dataset") == REBUILT]
+        second = build(episodes=3)
+        train(compose_cfg([*TD3BC_RUN, f"dataset={REBUILT}", "seed=1", *experiment]))
+        more = [f"total_steps={STEPS + 50}"]
+        resumed = [f"resume={seed0.info.run_id}", *more, *experiment]
+        with pytest.raises(ConfigError) as refused:  # seed 0 would go on with other data
+            train(compose_cfg(resumed), overrides=more)
+        assert str(refused.value) == (
+            f"resume={seed0.info.run_id} is not allowed: dataset='{REBUILT}' is not the data the "
+            f"run learned from (digest {first} then, {second} now): a rebuild under its name; "
+            "restore that build, or train a new run"
+        )
+        assert build(episodes=2) == first  # the data, not its name: the same episodes again
+        train(compose_cfg(resumed), overrides=more)  # its own data back: it goes on
+    assert metric_steps(client, seed0.info.run_id, "loss/critic")[-1] == STEPS + 50
+    runs = [r for r in all_runs(client) if r.data.tags.get("dataset") == REBUILT]
+    assert sorted(r.data.params["dataset_stats.digest"] for r in runs) == sorted([first, second])
+    out = tmp_path / "report"
+    line = one_line_error(
+        run_cli(
+            ["env=pendulum", "algos=[td3bc]", f"out={out}", *experiment],
+            cwd=chain["path"],
+            module="walkers.compare",
+        )
+    )
+    assert line == (
+        f"error: dataset='{REBUILT}' is not one dataset here: its runs learned from 2 builds of "
+        f"it (2 episodes, 400 steps, return {_return_mean(runs, first)}, digest {first}: td3bc 1; "
+        f"3 episodes, 600 steps, return {_return_mean(runs, second)}, digest {second}: td3bc 1); "
+        "compare the runs of one build (another experiment: walkers.ingest into=..., or "
+        "tracking.experiment= for the new runs)"
+    )
+    assert not out.exists()
+
+
+def _return_mean(runs, digest: str) -> str:
+    (run,) = [r for r in runs if r.data.params["dataset_stats.digest"] == digest]
+    return run.data.params["dataset_stats.return_mean"]

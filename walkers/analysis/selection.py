@@ -15,6 +15,7 @@ from walkers.analysis import stats
 from walkers.analysis.results import AXIS_NAMES, SeedRun
 from walkers.errors import ConfigError
 from walkers.tracking import ENV_STEPS, GRADIENT_STEPS, KIND_TAG, ORIGIN_TAG
+from walkers.training.provenance import DATA_DIGEST, DATA_STATS_KEYS
 
 CURVE_METRIC = "eval/return_mean"
 TARGET_METRIC = re.compile(r"eval/target_(.+)/return_mean")  # a DT's return at one target
@@ -94,6 +95,7 @@ def select_runs(
         finished = [
             r for r in finished if x_axis(r) == ENV_STEPS or r.data.tags.get("dataset") == dataset
         ]
+        check_one_build(dataset, [r for r in finished if x_axis(r) == GRADIENT_STEPS])
     chosen, budgets = [], {}
     on_env_steps = [r for r in finished if x_axis(r) == ENV_STEPS]
     if on_env_steps:
@@ -135,6 +137,52 @@ def resolve_dataset(wanted: str | None, offline: list, env_id: str) -> str:
     raise ConfigError(
         f"dataset={wanted!r} is not allowed: no finished offline run of {env_id} learned from it; "
         f"datasets they learned from: {', '.join(sorted(map(str, found)))}"
+    )
+
+
+def dataset_build(run) -> tuple[tuple[str, ...], str | None]:
+    """Which data an offline run learned from, beyond its dataset's name: the statistics it
+    recorded and the data's digest (None for runs from before the digest was recorded)."""
+    params = run.data.params
+    return tuple(params.get(key, "?") for key in DATA_STATS_KEYS), params.get(DATA_DIGEST)
+
+
+def _build_text(stats: tuple[str, ...], digest: str | None) -> str:
+    episodes, steps, mean, _ = stats
+    return f"{episodes} episodes, {steps} steps, return {mean}" + (
+        f", digest {digest}" if digest else ""
+    )
+
+
+def check_one_build(dataset: str, runs: list) -> None:
+    """Refuse, in one line, offline runs of ``dataset`` that learned from different data under its
+    name (a rebuild by other runs, or on another CPU): their scores answer different questions.
+    Runs agree when their recorded statistics agree, and their digests where both have one."""
+    builds: dict[tuple, dict[str | None, list]] = {}
+    for run in runs:
+        stats, digest = dataset_build(run)
+        builds.setdefault(stats, {}).setdefault(digest, []).append(run)
+    found = []  # (stats, digest, runs) of each distinct build
+    for stats, by_digest in builds.items():
+        digests = [d for d in by_digest if d is not None]
+        if len(digests) <= 1:  # runs without a digest join the one build of their statistics
+            found.append((stats, digests[0] if digests else None, sum(by_digest.values(), [])))
+        else:
+            found += [(stats, d, rs) for d, rs in by_digest.items()]
+    if len(found) < 2:
+        return
+    found.sort(key=lambda build: min(r.info.start_time or 0 for r in build[2]))  # first build first
+    listed = "; ".join(
+        f"{_build_text(stats, digest)}: "
+        + ", ".join(
+            f"{a} {n}" for a, n in sorted(Counter(r.data.tags.get("algo") for r in rs).items())
+        )
+        for stats, digest, rs in found
+    )
+    raise ConfigError(
+        f"dataset={dataset!r} is not one dataset here: its runs learned from {len(found)} builds "
+        f"of it ({listed}); compare the runs of one build (another experiment: "
+        "walkers.ingest into=..., or tracking.experiment= for the new runs)"
     )
 
 

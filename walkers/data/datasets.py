@@ -14,6 +14,8 @@ return of the behaviour policy, i.e. of the dataset), so a score can be normaliz
 from __future__ import annotations
 
 import dataclasses
+import functools
+import hashlib
 import re
 import warnings
 from dataclasses import dataclass
@@ -71,6 +73,18 @@ class OfflineData:
     @property
     def steps(self) -> int:
         return sum(len(e.rewards) for e in self.episodes)
+
+    @functools.cached_property
+    def digest(self) -> str:
+        """What the data is, not what it is called: a hash of every episode's arrays, in order
+        (16 hex digits). A dataset rebuilt under its name by other runs, or on another CPU, has
+        another digest; the same data rebuilt has the same."""
+        hashed = hashlib.sha256()
+        for e in self.episodes:
+            for array in (e.observations, e.actions, e.rewards, e.terminations, e.truncations):
+                hashed.update(np.ascontiguousarray(array).tobytes())
+            hashed.update(b"|")  # an episode's end: the same steps cut otherwise differ
+        return hashed.hexdigest()[:16]
 
 
 def load(name: str) -> OfflineData:

@@ -142,6 +142,18 @@ def git_commit() -> str:
         return "unknown"
 
 
+#: The params that say which data an offline run learned from, beyond its dataset's name (runs
+#: from before the digest have the others).
+DATA_DIGEST = "dataset_stats.digest"
+DATA_STATS_KEYS = (
+    "dataset_stats.episodes",
+    "dataset_stats.steps",
+    "dataset_stats.return_mean",
+    "dataset_stats.return_max",
+)
+DATA_BUILD_KEYS = (DATA_DIGEST, *DATA_STATS_KEYS)
+
+
 def dataset_params(data, env_cfg) -> dict[str, str]:
     """An offline run's dataset statistics, as params, with the references its normalized scores
     are measured between and the behaviour policy's own score on them."""
@@ -154,6 +166,7 @@ def dataset_params(data, env_cfg) -> dict[str, str]:
         "dataset_stats.behaviour_score": None
         if behaviour_score is None
         else f"{behaviour_score:.2f}",
+        DATA_DIGEST: data.digest,
         "dataset_stats.episodes": len(data.episodes),
         "dataset_stats.steps": data.steps,
         "dataset_stats.return_mean": f"{returns.mean():.2f}",

@@ -5,6 +5,7 @@
 - a job run again (its ``job_key``): FINISHED runs are its result (:func:`finished_attempts`),
   a RUNNING, KILLED or FAILED one continues (:func:`continue_earlier_attempt`);
 - which checkpoint: the local resume copy or MLflow's, the newer (:func:`last_checkpoint`);
+- an offline run goes on learning from the data it started on (:func:`check_same_data`);
 - into the run: agent, progress, RNGs and the agent's resume notes (:func:`restore`).
 
 The run itself is reopened by :meth:`TrainingRun.open` (``cfg.resume`` set), and the checkpoints
@@ -25,7 +26,13 @@ from walkers.seeding import restore_torch_rng
 from walkers.tracking import differing_keys, flatten
 from walkers.training import checkpoints
 from walkers.training.bookkeeping import Progress, RunBook
-from walkers.training.provenance import DIVERGED_TAG, MEMBER_TAG, SUPERSEDED_TAG
+from walkers.training.provenance import (
+    DATA_BUILD_KEYS,
+    DIVERGED_TAG,
+    MEMBER_TAG,
+    SUPERSEDED_TAG,
+    dataset_params,
+)
 from walkers.training.run import RunFolder, TrainingRun, job_key_of_seed, run_job_keys
 
 log = logging.getLogger("walkers")
@@ -220,6 +227,23 @@ def continue_earlier_attempt(client, cfg: DictConfig) -> DictConfig:
     cfg = cfg.copy()
     cfg.resume = ids[0] if cfg.population == 1 else [r.info.run_id for r in runs]
     return cfg
+
+
+def check_same_data(client, cfg: DictConfig, data) -> None:
+    """A resumed offline run reloads its dataset by name; refuse, in one line, a dataset rebuilt
+    under that name since the run started (other episodes, or another CPU's rounding): the run
+    would go on learning from other data. Checked on what the run recorded: its data's digest,
+    and for runs from before the digest, the data's statistics."""
+    recorded = client.get_run(str(cfg.resume)).data.params
+    now = dataset_params(data, cfg.env)
+    for key in DATA_BUILD_KEYS:
+        then = recorded.get(key)
+        if then is not None and then != str(now[key]):
+            raise ConfigError(
+                f"resume={cfg.resume} is not allowed: dataset={data.id!r} is not the data the run "
+                f"learned from ({key.removeprefix('dataset_stats.')} {then} then, {now[key]} now): "
+                "a rebuild under its name; restore that build, or train a new run"
+            )
 
 
 def last_checkpoint(client, cfg: DictConfig, run_id: str) -> dict:

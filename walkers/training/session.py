@@ -107,6 +107,8 @@ def _train_single(
     cfg: DictConfig, client, state: dict | None, tags: dict, reporter: EvaluationReporter | None
 ) -> dict[str, float]:
     data = load_dataset(cfg) if is_offline(cfg) else None
+    if data is not None and cfg.resume:
+        resume.check_same_data(client, cfg, data)
     eval_env = make_env(cfg.env, shaping=False)
     env = video_env = None
     try:

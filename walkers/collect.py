@@ -26,7 +26,8 @@ def main(cfg: DictConfig) -> None:
         f"dataset {stats['dataset']}: {stats['episodes']} episodes, {stats['steps']} steps, "
         f"return {stats['return_mean']:.1f} ± {stats['return_std']:.1f} "
         f"(min {stats['return_min']:.1f}, median {stats['return_median']:.1f}, "
-        f"max {stats['return_max']:.1f}); random policy {stats['random_return']:.1f}"
+        f"max {stats['return_max']:.1f}); random policy {stats['random_return']:.1f}; "
+        f"digest {stats['digest']}"
     )
     print(f"stored in {stats['path']}")
     if "mlflow_url" in stats:

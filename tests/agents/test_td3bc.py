@@ -483,14 +483,15 @@ def test_a_dataset_rebuilt_under_its_name_is_not_compared_with_its_first_build(c
     client = chain["client"]
 
     def build(episodes: int) -> str:
-        collect(
+        recorded = collect(
             compose_cfg(
                 ["run_id=random", "env=pendulum", f"episodes={episodes}", "random_episodes=2",
                  f"dataset={REBUILT}", "overwrite=true", "log_to_mlflow=false", *experiment],
                 config_name="collect",
             )
         )  # fmt: skip
-        return datasets.load(REBUILT).digest
+        assert recorded["digest"] == datasets.load(REBUILT).digest  # as written, as read back
+        return recorded["digest"]
 
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv("MINARI_DATASETS_PATH", str(chain["path"] / "minari"))

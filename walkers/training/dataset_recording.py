@@ -273,6 +273,7 @@ def dataset_stats(data, per_source: dict[str, list[float]]) -> dict:
     return {
         "dataset": data.id,
         "env": data.env_id,
+        "digest": data.digest,  # what the data is: a rebuild under its name has another
         "episodes": len(data.episodes),
         "steps": data.steps,
         "return_mean": float(returns.mean()),
@@ -303,6 +304,7 @@ def _log_dataset_run(client, cfg: DictConfig, data, stats: dict, sources: list[s
         tracker.log_params(
             {
                 "dataset": data.id,
+                "digest": data.digest,
                 "run_id": sources,
                 "checkpoint": "last" if cfg.replay else cfg.checkpoint,
                 "replay": cfg.replay,

@@ -95,7 +95,7 @@ bench-gpu: $(STAMP)  ## the prepared script for a lent GPU, under 5 minutes: the
 	timeout 180 $(PY) benchmarks/bench_throughput.py --device cuda --only "TD3,SAC,PPO" --population 1,5,16 --reps 2 --steps 200
 	timeout 30 $(PY) benchmarks/bench_dt.py --devices cuda --reps 2 --steps 10
 
-offline-gpu:  ## on a lent GPU: Decision Transformer seeds 0-2 on a dataset carried in .walkers/datasets (DATASET=walkers/walker2d/medium-v0), side by side, the finished ones a bundle in $$OUT/bundles for walkers.ingest here (benchmarks/device_offline.sh; sets itself up from .whl/)
+offline-gpu:  ## on a lent GPU: the offline study's arms, DT and TD3+BC seeds 0-2, on one dataset carried in .walkers/datasets (DATASET=walkers/walker2d/medium-v0), side by side, each algorithm's finished runs a bundle in $$OUT/bundles for walkers.ingest here (benchmarks/device_offline.sh; sets itself up from .whl/)
 	bash benchmarks/device_offline.sh
 
 baselines-gpu:  ## on a lent GPU: the next off-policy 100k baselines results/ lacks, 3 seeds as one captured population each, 4 side by side, each finished one a results page in $$OUT/results (benchmarks/device_baselines.sh; sets itself up from .whl/)

@@ -1,6 +1,7 @@
-"""benchmarks/device_offline.sh, the offline call of a lent GPU, tried on the CPU: DT's seeds on a
-dataset made here train side by side, the finished ones come home as one bundle, and that bundle
-ingested into the study's store makes the same keyed command there train nothing."""
+"""benchmarks/device_offline.sh, the offline call of a lent GPU, tried on the CPU: DT's and TD3+BC's
+seeds on one dataset made here train side by side, the finished ones come home as one bundle per
+algorithm, and those bundles ingested into the study's store make the same keyed commands there
+train nothing."""
 
 from __future__ import annotations
 
@@ -13,8 +14,9 @@ from walkers.tracking import bundles
 pytestmark = pytest.mark.slow
 
 DATASET = "walkers/pendulum/random-v0"
+ALGOS = ("dt", "td3bc")
 STEPS, EVERY = 40, 20
-EXTRA = " ".join([*tiny("dt"), "eval_episodes=1", "log_every=10"])
+EXTRA = {algo: " ".join([*tiny(algo), "eval_episodes=1", "log_every=10"]) for algo in ALGOS}
 
 
 @pytest.fixture
@@ -46,11 +48,11 @@ def run_script(tmp_path, minari_path, deadline: int = 400):
         DATASET=DATASET,
         ENV="pendulum",
         SEEDS="0,1",
-        STEPS=str(STEPS),
+        ARMS=" ".join(f"{algo}:{STEPS}" for algo in ALGOS),
         EVERY=str(EVERY),
         EXPERIMENT="offline_pendulum",
         DEADLINE=str(deadline),
-        EXTRA=EXTRA,
+        **{f"EXTRA_{algo.upper()}": EXTRA[algo] for algo in ALGOS},
     )
 
 
@@ -58,42 +60,45 @@ def test_the_finished_seeds_come_home_and_count_as_done_in_the_studys_store(tmp_
     done = run_script(tmp_path, minari_path)
 
     assert done.returncode == 0, done.stdout + done.stderr
-    name = "dt_walkers_pendulum_random"
-    assert f"{name}: bundle in" in done.stdout, done.stdout
-    document = bundles.read_bundle(tmp_path / "out" / "bundles" / name)
-    keys = sorted(r["tags"]["walkers.job_key"] for r in document["runs"])
-    assert keys == [f"offline/dt/{DATASET}/0", f"offline/dt/{DATASET}/1"]
-    assert {r["status"] for r in document["runs"]} == {"FINISHED"}
-
     home = tmp_path / "home"
     home.mkdir()
     store = new_store(home)
-    ingested = run_cli(
-        [f"bundle={tmp_path / 'out' / 'bundles' / name}", f"tracking.uri={store['uri']}"],
-        cwd=home,
-        module="walkers.ingest",
-    )
-    assert ingested.returncode == 0, ingested.stderr[-2000:]
-    rerun = run_cli(  # the keyed command of docs/offline.md, here, on the study's store
-        [
-            "-m",
-            "algo=dt",
-            "env=pendulum",
-            f"dataset={DATASET}",
-            "seed=0,1",
-            f"total_steps={STEPS}",
-            f"eval_every={EVERY}",
-            f"checkpoint_every={EVERY}",
-            "job_key=offline/dt/${dataset}/${seed}",
-            "tracking.experiment=offline_pendulum",
-            *store["overrides"],
-            *EXTRA.split(),
-        ],
-        cwd=home,
-        env_overrides={"MINARI_DATASETS_PATH": str(minari_path)},
-    )
-    assert rerun.returncode == 0, rerun.stderr[-2000:]
-    assert len(all_runs(store["client"])) == 2  # the two imported runs, nothing trained again
+    for algo in ALGOS:
+        name = f"{algo}_walkers_pendulum_random"
+        assert f"{name}: bundle in" in done.stdout, done.stdout
+        document = bundles.read_bundle(tmp_path / "out" / "bundles" / name)
+        keys = sorted(r["tags"]["walkers.job_key"] for r in document["runs"])
+        assert keys == [f"offline/{algo}/{DATASET}/0", f"offline/{algo}/{DATASET}/1"]
+        assert {r["status"] for r in document["runs"]} == {"FINISHED"}
+        ingested = run_cli(
+            [f"bundle={tmp_path / 'out' / 'bundles' / name}", f"tracking.uri={store['uri']}"],
+            cwd=home,
+            module="walkers.ingest",
+        )
+        assert ingested.returncode == 0, ingested.stderr[-2000:]
+    for algo in ALGOS:
+        rerun = run_cli(  # the keyed command of docs/offline.md, here, on the study's store
+            [
+                "-m",
+                f"algo={algo}",
+                "env=pendulum",
+                f"dataset={DATASET}",
+                "seed=0,1",
+                f"total_steps={STEPS}",
+                f"eval_every={EVERY}",
+                f"checkpoint_every={EVERY}",
+                f"job_key=offline/{algo}/${{dataset}}/${{seed}}",
+                "tracking.experiment=offline_pendulum",
+                *store["overrides"],
+                *EXTRA[algo].split(),
+            ],
+            cwd=home,
+            env_overrides={"MINARI_DATASETS_PATH": str(minari_path)},
+        )
+        assert rerun.returncode == 0, rerun.stderr[-2000:]
+    assert len(all_runs(store["client"])) == 4  # the imported runs, nothing trained again
+    runs = all_runs(store["client"])  # both arms learned from the one dataset carried there
+    assert len({r.data.params["dataset_stats.digest"] for r in runs}) == 1
 
 
 def test_a_seed_stopped_at_the_deadline_stays_on_the_machine(tmp_path, minari_path):
@@ -101,5 +106,6 @@ def test_a_seed_stopped_at_the_deadline_stays_on_the_machine(tmp_path, minari_pa
 
     assert done.returncode == 0, done.stdout + done.stderr
     assert "stopped at the deadline" in done.stdout
-    assert "nothing finished" in done.stdout
-    assert not (tmp_path / "out" / "bundles" / "dt_walkers_pendulum_random").exists()
+    for algo in ALGOS:
+        assert f"{algo}_walkers_pendulum_random: nothing finished" in done.stdout
+        assert not (tmp_path / "out" / "bundles" / f"{algo}_walkers_pendulum_random").exists()

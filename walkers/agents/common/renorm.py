@@ -52,14 +52,21 @@ class EnsembleBatchRenorm(nn.Module):
             if members != slice(None):
                 raise ValueError("batch statistics are learned by all members together")
             mean, var = self._training_statistics(x)
-        return scale * (x - mean) / (var + self.eps).sqrt() + bias
+        # scale * (x - mean) / sqrt(var + eps) + bias, with the per-feature factors folded
+        # first: two passes over x instead of four (the same to float rounding)
+        gain = scale * (var + self.eps).rsqrt()
+        return torch.addcmul(bias - mean * gain, x, gain)
 
     def _training_statistics(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The mean and variance to normalize ``x`` with in training: the batch's during the
         warm-up, then the running ones corrected towards the batch's (a gradient flows through
         the batch statistics, not through the correction). Moves the running statistics."""
         batch_mean = x.mean(dim=1, keepdim=True)
-        batch_var = x.var(dim=1, keepdim=True)  # unbiased, as sb3-contrib
+        # unbiased, as sb3-contrib; the centred squares summed rather than torch.var, whose
+        # reduction over the middle (batch) dim is strided: half the time on a CPU, the same
+        # variance to float rounding (about 1e-7 relative)
+        centred = x - batch_mean
+        batch_var = (centred * centred).sum(dim=1, keepdim=True) / (x.shape[1] - 1)
         running_std = (self.running_var + self.eps).sqrt()
         with torch.no_grad():
             r = ((batch_var + self.eps).sqrt() / running_std).clamp(1 / self.R_MAX, self.R_MAX)

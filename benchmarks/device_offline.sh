@@ -33,6 +33,15 @@ EVERY=${EVERY:-5000}
 EXPERIMENT=${EXPERIMENT:-offline_walker2d}
 DEADLINE=${DEADLINE:-440}
 DEVICE=${DEVICE:-cuda}
+algos=()
+for arm in $ARMS; do
+  algo=${arm%%:*}
+  if [[ " ${algos[*]} " == *" $algo "* ]]; then
+    echo "error: ARMS=\"$ARMS\" is not allowed: $algo is named twice" >&2
+    exit 2
+  fi
+  algos+=("$algo")
+done
 WORK=$(mktemp -d)  # the store, checkpoints and Hydra's folders: only the bundle travels
 trap 'rm -rf "$WORK"' EXIT  # however the call ends
 mkdir -p "$OUT/bundles"
@@ -54,16 +63,20 @@ train() {  # train ALGO STEPS: the algorithm's seeds as the study's keyed multir
     algo="$algo" env="$ENV" dataset="$DATASET" "seed=$SEEDS" total_steps="$steps" \
     eval_every="$EVERY" checkpoint_every="$EVERY" device="$DEVICE" torch_threads=2 progress=false \
     "job_key=offline/$algo/\${dataset}/\${seed}" tracking.experiment="$EXPERIMENT" \
-    tracking.uri="$store" work_dir="$WORK/work" hydra/launcher=joblib hydra.launcher.n_jobs="$jobs" \
-    ${!extra_var:-}) > "$OUT/${algo}_$slug.log" 2>&1
+    tracking.uri="$store" work_dir="$WORK/work" hydra.sweep.dir="$WORK/multirun/$algo" \
+    hydra/launcher=joblib hydra.launcher.n_jobs="$jobs" ${!extra_var:-}) > "$OUT/${algo}_$slug.log" 2>&1
+  local rc=$?
+  echo "$rc $SECONDS" > "$WORK/$algo.ended"  # its own exit and time, whatever the other arms do
+  return $rc
 }
 
-bring_home() {  # bring_home ALGO RC: its finished runs as $OUT/bundles/<algo>_<dataset>
-  local algo=$1 rc=$2 name=${1}_$slug
+bring_home() {  # bring_home ALGO: its finished runs as $OUT/bundles/<algo>_<dataset>
+  local algo=$1 name=${1}_$slug rc seconds
+  read -r rc seconds < "$WORK/$algo.ended"
   case $rc in
-    0) echo "$name: trained in ${SECONDS}s" ;;
+    0) echo "$name: trained in ${seconds}s" ;;
     124) echo "$name: stopped at the deadline, ${DEADLINE}s (its unfinished runs stay on the machine)" ;;
-    *) echo "$name: train exit $rc after ${SECONDS}s (its log: $OUT/$name.log)" ;;
+    *) echo "$name: train exit $rc after ${seconds}s (its log: $OUT/$name.log)" ;;
   esac
   if (cd "$WORK" && PYTHONPATH=$REPO "$py" -m walkers.export tracking.uri="$store" \
       tracking.experiment="$EXPERIMENT" "where={algo: $algo}" out="$OUT/bundles/$name") \
@@ -74,15 +87,13 @@ bring_home() {  # bring_home ALGO RC: its finished runs as $OUT/bundles/<algo>_<
   fi
 }
 
-declare -A pids
 for arm in $ARMS; do
   train "${arm%%:*}" "${arm#*:}" &
-  pids[${arm%%:*}]=$!
 done
+wait  # every arm's multirun, each to its end or the deadline
 : > "$OUT/summary.txt"
-for algo in "${!pids[@]}"; do
-  wait "${pids[$algo]}"
-  bring_home "$algo" $? | tee -a "$OUT/summary.txt"
+for algo in "${algos[@]}"; do
+  bring_home "$algo" | tee -a "$OUT/summary.txt"
 done
 for arm in $ARMS; do
   grep -E "final/return|ended|error" "$OUT/${arm%%:*}_$slug.log" | tail -8

@@ -109,3 +109,13 @@ def test_a_seed_stopped_at_the_deadline_stays_on_the_machine(tmp_path, minari_pa
     for algo in ALGOS:
         assert f"{algo}_walkers_pendulum_random: nothing finished" in done.stdout
         assert not (tmp_path / "out" / "bundles" / f"{algo}_walkers_pendulum_random").exists()
+
+
+def test_an_algorithm_named_twice_is_one_line_before_anything_runs(tmp_path, minari_path):
+    done = run_device_script("device_offline.sh", tmp_path, ARMS="dt:40 td3bc:40 dt:80")
+    assert done.returncode == 2
+    assert (
+        done.stderr.strip()
+        == 'error: ARMS="dt:40 td3bc:40 dt:80" is not allowed: dt is named twice'
+    )
+    assert not (tmp_path / "out").exists()

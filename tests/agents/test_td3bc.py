@@ -483,15 +483,7 @@ def test_a_dataset_rebuilt_under_its_name_is_not_compared_with_its_first_build(c
     client = chain["client"]
 
     def build(episodes: int) -> str:
-        recorded = collect(
-            compose_cfg(
-                ["run_id=random", "env=pendulum", f"episodes={episodes}", "random_episodes=2",
-                 f"dataset={REBUILT}", "overwrite=true", "log_to_mlflow=false", *experiment],
-                config_name="collect",
-            )
-        )  # fmt: skip
-        assert recorded["digest"] == datasets.load(REBUILT).digest  # as written, as read back
-        return recorded["digest"]
+        return _random_dataset(REBUILT, episodes, experiment)
 
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv("MINARI_DATASETS_PATH", str(chain["path"] / "minari"))
@@ -530,6 +522,45 @@ def test_a_dataset_rebuilt_under_its_name_is_not_compared_with_its_first_build(c
         "tracking.experiment= for the new runs)"
     )
     assert not out.exists()
+
+
+def _random_dataset(name: str, episodes: int, overrides: list[str]) -> str:
+    """``name`` (re)built of ``episodes`` uniform random Pendulum episodes; its digest."""
+    recorded = collect(
+        compose_cfg(
+            ["run_id=random", "env=pendulum", f"episodes={episodes}", "random_episodes=2",
+             f"dataset={name}", "overwrite=true", "log_to_mlflow=false", *overrides],
+            config_name="collect",
+        )
+    )  # fmt: skip
+    assert recorded["digest"] == datasets.load(name).digest  # as written, as read back
+    return recorded["digest"]
+
+
+def test_a_job_run_again_after_its_dataset_was_rebuilt_starts_anew(chain):
+    """A keyed job whose earlier run was cut (KILLED) continues that run when run again, unless
+    its dataset was rebuilt since: then the earlier run is superseded (FAILED, tagged why) and a
+    new run learns from the new data, where continuing would have mixed two datasets."""
+    name = "walkers/pendulum/rekeyed-v0"
+    job = [*TD3BC_RUN, f"dataset={name}", "job_key=rekeyed/0", "tracking.experiment=rekeyed"]
+    client = chain["client"]
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("MINARI_DATASETS_PATH", str(chain["path"] / "minari"))
+        _random_dataset(name, 2, chain["overrides"])
+        train(compose_cfg([*job, *chain["overrides"]]))
+        (cut,) = [r for r in all_runs(client) if r.data.tags.get("dataset") == name]
+        client.set_terminated(cut.info.run_id, "KILLED")  # as a run whose process was killed
+        second = _random_dataset(name, 3, chain["overrides"])
+        train(compose_cfg([*job, *chain["overrides"]]))
+    cut = client.get_run(cut.info.run_id)
+    assert cut.info.status == "FAILED"
+    assert "which learned from another build of dataset=" in cut.data.tags["walkers.superseded"]
+    (new,) = [
+        r
+        for r in all_runs(client)
+        if r.data.tags.get("dataset") == name and r.info.run_id != cut.info.run_id
+    ]
+    assert new.info.status == "FINISHED" and new.data.params["dataset_stats.digest"] == second
 
 
 def _return_mean(runs, digest: str) -> str:

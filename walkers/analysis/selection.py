@@ -15,7 +15,7 @@ from walkers.analysis import stats
 from walkers.analysis.results import AXIS_NAMES, SeedRun
 from walkers.errors import ConfigError
 from walkers.tracking import ENV_STEPS, GRADIENT_STEPS, KIND_TAG, ORIGIN_TAG
-from walkers.training.provenance import DATA_DIGEST, DATA_STATS_KEYS
+from walkers.training.provenance import DATA_DIGEST, DATA_STATS_KEYS, other_data
 
 CURVE_METRIC = "eval/return_mean"
 TARGET_METRIC = re.compile(r"eval/target_(.+)/return_mean")  # a DT's return at one target
@@ -95,7 +95,6 @@ def select_runs(
         finished = [
             r for r in finished if x_axis(r) == ENV_STEPS or r.data.tags.get("dataset") == dataset
         ]
-        check_one_build(dataset, [r for r in finished if x_axis(r) == GRADIENT_STEPS])
     chosen, budgets = [], {}
     on_env_steps = [r for r in finished if x_axis(r) == ENV_STEPS]
     if on_env_steps:
@@ -113,6 +112,7 @@ def select_runs(
         offline_budgets[algo], kept = _one_budget(algo_runs, given, GRADIENT_STEPS, notes, algo)
         chosen += kept
     if offline_budgets:
+        check_one_build(dataset, [r for r in chosen if x_axis(r) == GRADIENT_STEPS])
         shared = set(offline_budgets.values())
         budgets[GRADIENT_STEPS] = shared.pop() if len(shared) == 1 else offline_budgets
     return chosen, budgets, notes
@@ -140,15 +140,10 @@ def resolve_dataset(wanted: str | None, offline: list, env_id: str) -> str:
     )
 
 
-def dataset_build(run) -> tuple[tuple[str, ...], str | None]:
-    """Which data an offline run learned from, beyond its dataset's name: the statistics it
-    recorded and the data's digest (None for runs from before the digest was recorded)."""
+def _build_text(run) -> str:
     params = run.data.params
-    return tuple(params.get(key, "?") for key in DATA_STATS_KEYS), params.get(DATA_DIGEST)
-
-
-def _build_text(stats: tuple[str, ...], digest: str | None) -> str:
-    episodes, steps, mean, _ = stats
+    episodes, steps, mean = (params.get(key, "?") for key in DATA_STATS_KEYS[:3])
+    digest = params.get(DATA_DIGEST)
     return f"{episodes} episodes, {steps} steps, return {mean}" + (
         f", digest {digest}" if digest else ""
     )
@@ -157,33 +152,34 @@ def _build_text(stats: tuple[str, ...], digest: str | None) -> str:
 def check_one_build(dataset: str, runs: list) -> None:
     """Refuse, in one line, offline runs of ``dataset`` that learned from different data under its
     name (a rebuild by other runs, or on another CPU): their scores answer different questions.
-    Runs agree when their recorded statistics agree, and their digests where both have one."""
-    builds: dict[tuple, dict[str | None, list]] = {}
-    for run in runs:
-        stats, digest = dataset_build(run)
-        builds.setdefault(stats, {}).setdefault(digest, []).append(run)
-    found = []  # (stats, digest, runs) of each distinct build
-    for stats, by_digest in builds.items():
-        digests = [d for d in by_digest if d is not None]
-        if len(digests) <= 1:  # runs without a digest join the one build of their statistics
-            found.append((stats, digests[0] if digests else None, sum(by_digest.values(), [])))
+    Each build is the first run's of its kind; a run is of it when
+    :func:`~walkers.training.provenance.other_data` finds no difference (digests where both
+    have one, the recorded statistics otherwise)."""
+    builds: list[tuple[object, list]] = []  # (the first run of a build, its runs), first seen first
+    for run in sorted(runs, key=lambda r: r.info.start_time or 0):
+        for first, members in builds:
+            ours, theirs = run.data.params, first.data.params
+            if not other_data(ours, theirs) and not other_data(theirs, ours):
+                members.append(run)
+                break
         else:
-            found += [(stats, d, rs) for d, rs in by_digest.items()]
-    if len(found) < 2:
+            builds.append((run, [run]))
+    if len(builds) < 2:
         return
-    found.sort(key=lambda build: min(r.info.start_time or 0 for r in build[2]))  # first build first
     listed = "; ".join(
-        f"{_build_text(stats, digest)}: "
-        + ", ".join(
-            f"{a} {n}" for a, n in sorted(Counter(r.data.tags.get("algo") for r in rs).items())
-        )
-        for stats, digest, rs in found
+        f"{_build_text(first)}: "
+        + ", ".join(f"{a} {n}" for a, n in sorted(Counter(_algo_of(r) for r in members).items()))
+        for first, members in builds
     )
     raise ConfigError(
-        f"dataset={dataset!r} is not one dataset here: its runs learned from {len(found)} builds "
+        f"dataset={dataset!r} is not one dataset here: its runs learned from {len(builds)} builds "
         f"of it ({listed}); compare the runs of one build (another experiment: "
         "walkers.ingest into=..., or tracking.experiment= for the new runs)"
     )
+
+
+def _algo_of(run) -> str:
+    return str(run.data.tags.get("algo", "?"))
 
 
 def _one_budget(runs: list, given: int | None, axis: str, notes: list[str], algo: str = ""):

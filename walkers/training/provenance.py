@@ -142,8 +142,9 @@ def git_commit() -> str:
         return "unknown"
 
 
-#: The params that say which data an offline run learned from, beyond its dataset's name (runs
-#: from before the digest have the others).
+#: The params that say which data an offline run learned from, beyond its dataset's name: its
+#: digest (a hash of the episodes), and for runs from before the digest, the data's statistics
+#: and the references its normalized scores were measured between.
 DATA_DIGEST = "dataset_stats.digest"
 DATA_STATS_KEYS = (
     "dataset_stats.episodes",
@@ -151,7 +152,21 @@ DATA_STATS_KEYS = (
     "dataset_stats.return_mean",
     "dataset_stats.return_max",
 )
-DATA_BUILD_KEYS = (DATA_DIGEST, *DATA_STATS_KEYS)
+DATA_REFERENCE_KEYS = ("dataset_stats.behaviour_return", "dataset_stats.random_return")
+
+
+def other_data(recorded: dict[str, str], now: dict[str, str]) -> str | None:
+    """How the data of ``now`` (a dataset's :func:`dataset_params`, or another run's params)
+    differs from the data a run ``recorded``, in words (``digest a then, b now``); None when it
+    is the same data. Digests decide where the run has one; the statistics otherwise. The
+    references count in both cases: the same episodes with another random-policy score give
+    other normalized scores."""
+    keys = (DATA_DIGEST,) if recorded.get(DATA_DIGEST) else DATA_STATS_KEYS
+    for key in (*keys, *DATA_REFERENCE_KEYS):
+        then, current = recorded.get(key), now.get(key)
+        if then is not None and current is not None and then != str(current):
+            return f"{key.removeprefix('dataset_stats.')} {then} then, {current} now"
+    return None
 
 
 def dataset_params(data, env_cfg) -> dict[str, str]:

@@ -27,11 +27,11 @@ from walkers.tracking import differing_keys, flatten
 from walkers.training import checkpoints
 from walkers.training.bookkeeping import Progress, RunBook
 from walkers.training.provenance import (
-    DATA_BUILD_KEYS,
     DIVERGED_TAG,
     MEMBER_TAG,
     SUPERSEDED_TAG,
     dataset_params,
+    other_data,
 )
 from walkers.training.run import RunFolder, TrainingRun, job_key_of_seed, run_job_keys
 
@@ -232,18 +232,16 @@ def continue_earlier_attempt(client, cfg: DictConfig) -> DictConfig:
 def check_same_data(client, cfg: DictConfig, data) -> None:
     """A resumed offline run reloads its dataset by name; refuse, in one line, a dataset rebuilt
     under that name since the run started (other episodes, or another CPU's rounding): the run
-    would go on learning from other data. Checked on what the run recorded: its data's digest,
-    and for runs from before the digest, the data's statistics."""
+    would go on learning from other data. (A job run again does not get here: its earlier run
+    is superseded instead, :func:`_why_not_continued`.)"""
     recorded = client.get_run(str(cfg.resume)).data.params
-    now = dataset_params(data, cfg.env)
-    for key in DATA_BUILD_KEYS:
-        then = recorded.get(key)
-        if then is not None and then != str(now[key]):
-            raise ConfigError(
-                f"resume={cfg.resume} is not allowed: dataset={data.id!r} is not the data the run "
-                f"learned from ({key.removeprefix('dataset_stats.')} {then} then, {now[key]} now): "
-                "a rebuild under its name; restore that build, or train a new run"
-            )
+    difference = other_data(recorded, dataset_params(data, cfg.env))
+    if difference:
+        raise ConfigError(
+            f"resume={cfg.resume} is not allowed: dataset={data.id!r} is not the data the run "
+            f"learned from ({difference}): a rebuild under its name; restore that build, or "
+            "train a new run"
+        )
 
 
 def last_checkpoint(client, cfg: DictConfig, run_id: str) -> dict:
@@ -288,6 +286,13 @@ def _why_not_continued(client, cfg: DictConfig, runs: list) -> str | None:
     """Why the earlier attempt's runs (one per member, None where missing) cannot go on."""
     if any(r is None for r in runs):
         return f"which are not the {cfg.population} members of a population"
+    if cfg.get("dataset"):  # an offline job: its dataset may have been rebuilt since
+        from walkers.data import datasets  # Minari is imported only when a dataset is used
+
+        now = dataset_params(datasets.load(cfg.dataset), cfg.env)
+        difference = other_data(runs[0].data.params, now)
+        if difference:
+            return f"which learned from another build of dataset={cfg.dataset} ({difference})"
     steps = set()
     for run in runs:
         run_id = run.info.run_id

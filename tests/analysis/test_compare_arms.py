@@ -183,7 +183,10 @@ def test_group_by_makes_one_arm_per_value_in_natural_order():
         for size in ("[256, 256]", "[64, 64]")
         for seed in (0, 1)
     ]
-    runs.append(mlflow_run("old", **{k: v for k, v in TD3.items() if k != "algo.hidden_sizes"}))
+    # a run of code that recorded neither the key nor its algorithm's class (so no declared
+    # default stands in for it)
+    unknown = ("algo.hidden_sizes", "algo._target_")
+    runs.append(mlflow_run("old", **{k: v for k, v in TD3.items() if k not in unknown}))
     built, left_out, splits = arms.build_arms(runs, group_by=["algo.hidden_sizes"])
     assert [a.name for a in built] == [
         "algo.hidden_sizes=[64, 64]",
@@ -289,6 +292,33 @@ def test_a_run_from_before_a_key_existed_joins_the_arm_of_that_keys_old_value(st
     }
     (single,) = arms.build_arms([old, new])[0]
     assert len(single.runs) == 2  # one arm, two seeds
+
+
+def test_a_run_from_before_a_hyperparameter_was_declared_joins_the_arm_of_its_default(store):
+    """TD3's 100k Walker2d baseline: seeds 0-2 trained before algo.capture was declared, seeds
+    3-5 after, with its default (auto: eager on a CPU). One arm of six seeds, not "td3
+    (algo.capture=(not set))" beside "td3 (algo.capture=auto)"; a run that set another value
+    stays apart."""
+    client = store["client"]
+    experiment = client.create_experiment("declared_later")
+    base = {"algo._target_": "walkers.agents.td3.TD3", "algo.name": "td3", "algo.lr": "0.001"}
+
+    def logged(seed: int, **params: str):
+        run = client.create_run(experiment, tags={"algo": "td3"})
+        for key, value in {**base, "seed": str(seed), **params}.items():
+            client.log_param(run.info.run_id, key, value)
+        return client.get_run(run.info.run_id)
+
+    before = [logged(seed) for seed in range(3)]
+    after = [logged(seed, **{"algo.capture": "auto"}) for seed in range(3, 6)]
+    other = logged(6, **{"algo.capture": "true"})
+    assert arms.run_params(before[0])["algo.capture"] == "auto"  # its declared default
+    found, _, splits = arms.build_arms([*before, *after, other])
+    assert {a.name: len(a.runs) for a in found} == {
+        "td3 (algo.capture=auto)": 6,
+        "td3 (algo.capture=true)": 1,
+    }
+    assert len(splits) == 1
 
 
 def test_rendering_a_report_imports_no_mlflow():

@@ -15,6 +15,7 @@ import difflib
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 
+from walkers.agents.declarations.schemas import declared_since
 from walkers.tracking import ABSENT, differing_keys
 
 #: Config keys (MLflow params; a trailing "." is the whole subtree) that do not make an arm:
@@ -59,8 +60,25 @@ LATER_KEYS = {"impl": "walkers"}  # before impl=sb3 existed, walkers trained eve
 
 
 def run_params(run) -> dict[str, str]:
-    """A run's params as its arm sees them: :data:`LATER_KEYS` filled in where it lacks them."""
-    return LATER_KEYS | dict(run.data.params)
+    """A run's params as its arm sees them: :data:`LATER_KEYS` and the algorithm's hyperparameters
+    declared since the run was made (:func:`declared_later`) filled in where it lacks them."""
+    params = LATER_KEYS | dict(run.data.params)
+    return declared_later(params) | params
+
+
+def declared_later(params: Mapping[str, str]) -> dict[str, str]:
+    """The ``algo.*`` hyperparameters declared after a run with these params was made, at their
+    declared defaults, as the run would have logged them: the behaviour it had before they
+    existed (the rule a resume and a reference's fingerprint follow), so that it is not an arm
+    of its own ("td3 (algo.capture=(not set))") beside today's runs of the same configuration."""
+    target = params.get("algo._target_")
+    if not target:
+        return {}
+    algo = {
+        key.removeprefix("algo.").split(".")[0]: None for key in params if key.startswith("algo.")
+    }
+    added = declared_since(algo | {"_target_": target})
+    return {f"algo.{key}": str(value) for key, value in added.items()}  # as flatten logs them
 
 
 #: At most this many differing keys in an arm's name; the split note lists them all.

@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import atexit
+import functools
 import os
 import shutil
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -73,21 +76,26 @@ def compose_cfg(overrides: list[str], config_name: str = "train"):
         return compose(config_name=config_name, overrides=overrides)
 
 
+@functools.cache
+def _store_template() -> Path:
+    """An MLflow sqlite file with its schema created, one per test process: MLflow takes
+    seconds to migrate a new one, and every test store would pay them in its first command."""
+    folder = Path(tempfile.mkdtemp(prefix="walkers-store-template-"))
+    atexit.register(shutil.rmtree, folder, ignore_errors=True)
+    MlflowClient(f"sqlite:///{folder / 'mlflow.db'}").search_experiments()
+    return folder / "mlflow.db"
+
+
 @pytest.fixture(scope="session")
-def _empty_store_file(tmp_path_factory) -> Path:
-    """An MLflow sqlite file with its schema created (MLflow takes ~1.5 s to migrate a new one)."""
-    path = tmp_path_factory.mktemp("template") / "mlflow.db"
-    MlflowClient(f"sqlite:///{path}").search_experiments()
-    return path
+def _empty_store_file() -> Path:
+    return _store_template()
 
 
 def new_store(path: Path, template: Path | None = None) -> dict:
     """A fresh sqlite MLflow store and scratch dir in ``path``: overrides pointing runs there.
-
-    ``template``: an empty store file to copy instead of letting MLflow create the schema.
-    """
-    if template is not None:
-        shutil.copyfile(template, path / "mlflow.db")
+    Its file is a copy of an empty store (``template``, by default this process's)."""
+    path.mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(template or _store_template(), path / "mlflow.db")
     uri = f"sqlite:///{path / 'mlflow.db'}"
     return {
         "uri": uri,

@@ -4,7 +4,7 @@ bundle by ``walkers.compare``, never by hand, so that its numbers cannot drift f
 ``results/NAME/`` holds ``bundle/`` (the runs: :mod:`walkers.tracking.bundles`), ``page.yaml``
 (what the page is: its title, the budget reached, the machine and command that made it, and the
 ``walkers.compare`` overrides that make its report) and ``report/``, which this command writes
-anew: the bundle is imported into a temporary store and compared there.
+anew: the bundle's runs are compared where they lie (``walkers.compare bundle=...``).
 
     python -m walkers.results tiny          # or: make results
     python -m walkers.results --docs docs   # the docs site's results pages and home (make docs)
@@ -19,13 +19,12 @@ from __future__ import annotations
 import re
 import shutil
 import sys
-import tempfile
 from pathlib import Path
 
 import yaml
 from hydra import compose, initialize_config_dir
 
-from walkers import CONF_DIR, PROJECT_ROOT, tracking
+from walkers import CONF_DIR, PROJECT_ROOT
 from walkers.analysis.comparison import compare
 from walkers.analysis.suite_report import compare_suite
 from walkers.errors import ConfigError
@@ -45,29 +44,23 @@ def write_page(name: str, out: Path | None = None) -> Path:
         raise ConfigError(f"results={name!r} is not allowed: one of {', '.join(pages())}")
     page = yaml.safe_load((folder / "page.yaml").read_text())
     out = out or folder / "report"
-    with tempfile.TemporaryDirectory() as tmp:
-        uri = f"sqlite:///{Path(tmp) / 'mlflow.db'}"
-        client = tracking.connect(uri)
-        document = bundles.read_bundle(folder / "bundle")
-        bundles.import_bundle(client, folder / "bundle")
-        experiment = document["source"]["experiment"]
-        overrides = [
-            *page["compare"],
-            f"tracking.uri={uri}",
-            f"tracking.experiment={experiment}",
-            f"work_dir={Path(tmp) / 'work'}",
-            f"out={out / '${env.id}'}",
-            f"source='results/{name}/bundle (experiment {experiment})'",
-            "log_report=false",
-        ]
-        with initialize_config_dir(config_dir=str(CONF_DIR)):
-            cfg = compose("compare", overrides=overrides)
-        if out.exists():
-            shutil.rmtree(out)
-        if cfg.envs:
-            compare_suite(cfg)
-        else:
-            compare(cfg)
+    experiment = bundles.read_bundle(folder / "bundle")["source"]["experiment"]
+    overrides = [
+        *page["compare"],
+        f"bundle={folder / 'bundle'}",
+        f"tracking.experiment={experiment}",
+        f"out={out / '${env.id}'}",
+        f"source='results/{name}/bundle (experiment {experiment})'",
+        "log_report=false",
+    ]
+    with initialize_config_dir(config_dir=str(CONF_DIR)):
+        cfg = compose("compare", overrides=overrides)
+    if out.exists():
+        shutil.rmtree(out)
+    if cfg.envs:
+        compare_suite(cfg)
+    else:
+        compare(cfg)
     return out
 
 

@@ -17,12 +17,12 @@ from walkers.export import export as export_runs
 from walkers.tracking import bundles
 
 
-def report(store) -> str:
+def report(store, *args: str) -> str:
     """The report of the study's runs, with each run id replaced by the run's origin."""
     out = store["path"] / "report"
     result = run_cli(
         ["env=pendulum", "tracking.experiment=ab_tiny", f"out={out}", "log_report=false",
-         *store["overrides"]],
+         *store["overrides"], *args],
         cwd=store["path"],
         module="walkers.compare",
     )  # fmt: skip
@@ -99,6 +99,33 @@ def test_an_imported_study_reports_to_the_digit_and_a_second_import_adds_nothing
     assert export(target, "study=t", f"out={back}").returncode == 0
     home = ingest(source, back)
     assert home.returncode == 0 and "imported 0 runs" in home.stdout, home.stderr[-2000:]
+
+
+def test_a_bundle_is_compared_where_it_lies_as_its_runs_are_in_their_store(studied, tmp_path):
+    """``walkers.compare bundle=PATH``: the report its runs give in the store that made them,
+    and nothing written but the report (what ``python -m walkers.results`` builds pages with)."""
+    source, bundle, _ = studied
+    named = "source=the tiny study"
+    result = run_cli(
+        ["env=pendulum", f"bundle={bundle}", "out=report", "log_report=false", named],
+        cwd=tmp_path,
+        module="walkers.compare",
+    )
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["report"]  # no store, no scratch
+    here = (tmp_path / "report" / "report.md").read_text()
+    here += (tmp_path / "report" / "summary.json").read_text()
+    assert here == report(source, named)
+
+    wrong = run_cli(["env=hopper", f"bundle={bundle}", "log_report=false"], cwd=tmp_path,
+                    module="walkers.compare")  # fmt: skip
+    line = one_line_error(wrong)
+    assert f"no finished Hopper-v5 runs for any in bundle '{bundle}'" in line, line
+    assert "algorithms with runs there: " in line
+    missing = one_line_error(run_cli([f"bundle={tmp_path / 'nope'}"], cwd=tmp_path,
+                                     module="walkers.compare"))  # fmt: skip
+    assert "is not a bundle" in missing, missing
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["report"]
 
 
 def _rewritten(bundle, tmp_path, change) -> str:

@@ -58,7 +58,7 @@ from walkers.analysis.selection import (
     select_runs,
 )
 from walkers.errors import ConfigError
-from walkers.tracking import KIND_TAG
+from walkers.tracking import KIND_TAG, bundles
 
 log = logging.getLogger("walkers")
 
@@ -176,13 +176,13 @@ def _check(cfg: DictConfig) -> None:
             )
 
 
-def _check_group_by(group_by: list[str], runs: list, experiment: str) -> None:
+def _check_group_by(group_by: list[str], runs: list, where: str) -> None:
     """Every ``group_by`` key must be a config key of some training run of the experiment."""
     params = [run_params(r) for r in runs if r.data.tags.get(KIND_TAG, "train") == "train"]
     for key in group_by:
         if not any(key in p for p in params):
             raise ConfigError(
-                f"group_by={key!r} is not a config key of any run in experiment {experiment!r}: "
+                f"group_by={key!r} is not a config key of any run in {where}: "
                 + unknown_key_hint(key, params)
             )
 
@@ -198,13 +198,10 @@ def compare(cfg: DictConfig, beside: dict | None = None) -> tuple[Comparison, Pa
 def publish(comparison: Comparison, client, cfg: DictConfig, out: Path) -> str | None:
     """Write ``comparison``'s report to ``out`` and, with ``log_report``, log it as an MLflow
     run; returns its UI link."""
-    files = write_report(
-        comparison,
-        out,
-        source=cfg.get("source")
-        or f"{tracking.redacted_uri(cfg.tracking.uri)}, experiment {cfg.tracking.experiment!r}",
-    )
-    return _log_report(client, cfg, comparison, files) if cfg.log_report else None
+    files = write_report(comparison, out, source=source_name(cfg))
+    if not cfg.log_report:
+        return None
+    return _log_report(client or tracking.connect(cfg.tracking.uri), cfg, comparison, files)
 
 
 def build_comparison(cfg: DictConfig, beside: dict | None = None):
@@ -213,28 +210,20 @@ def build_comparison(cfg: DictConfig, beside: dict | None = None):
     ``beside``: env id -> the params reference arms are held to there (a study's shared
     settings); by default the settings every store run on the env shares."""
     _check(cfg)
-    client = tracking.connect(cfg.tracking.uri)
-    experiment = client.get_experiment_by_name(cfg.tracking.experiment)
-    if experiment is None:
-        names = [e.name for e in client.search_experiments()]
-        raise ConfigError(
-            f"tracking.experiment={cfg.tracking.experiment!r} is not in {cfg.tracking.uri}; "
-            f"experiments there: {', '.join(names) or 'none'}"
-        )
+    client, histories, runs = open_runs(cfg)
     algos = list(cfg.algos)
     group_by = parse_group_by(cfg.group_by)
-    runs = tracking.search_runs(client, experiment.experiment_id)
     references = load_references(cfg.get("reference") or [])
     mine, budget = store_settings(runs, cfg.env.id, cfg.total_steps)
     if beside and cfg.env.id in beside:
         mine = beside[cfg.env.id]
     for reference in references:
         check_like_for_like(reference, cfg.env.id, cfg.score, mine, budget)
-    source_of = {r.info.run_id: client for r in runs}
+    source_of = {r.info.run_id: histories for r in runs}
     for reference in references:
         source_of |= {r.info.run_id: reference for r in reference.runs}
         runs = runs + reference.runs
-    _check_group_by(group_by, runs, cfg.tracking.experiment)
+    _check_group_by(group_by, runs, runs_place(cfg))
     chosen, budgets, notes = select_runs(
         runs, cfg.env.id, algos, cfg.total_steps, cfg.gradient_steps, cfg.dataset
     )
@@ -258,7 +247,7 @@ def build_comparison(cfg: DictConfig, beside: dict | None = None):
         found = sorted({r.data.tags.get("algo") for r in runs if r.data.tags.get("algo")})
         raise ConfigError(
             f"algos={algos or sorted(found_algos)} has no finished {cfg.env.id} runs for "
-            f"{', '.join(missing) or 'any'} in experiment {cfg.tracking.experiment!r} "
+            f"{', '.join(missing) or 'any'} in {runs_place(cfg)} "
             f"(algorithms with runs there: {', '.join(found) or 'none'})"
             + (f"; left out: {'; '.join(notes)}" if notes else "")
         )
@@ -286,6 +275,40 @@ def build_comparison(cfg: DictConfig, beside: dict | None = None):
         provenance(ref, arms_of) for ref in references if (arms_of := _arms_from(ref, arms))
     ]
     return comparison, client
+
+
+def open_runs(cfg: DictConfig) -> tuple:
+    """Where the compared runs are: ``(client, histories, runs)``. The store's experiment
+    (its client reads their histories), or with ``bundle=PATH`` a bundle read where it lies,
+    without a store (client None: a report is logged to ``tracking.uri`` only if asked)."""
+    if cfg.get("bundle"):
+        bundle = bundles.BundleRuns(Path(str(cfg.bundle)))
+        return None, bundle, bundle.runs
+    client = tracking.connect(cfg.tracking.uri)
+    experiment = client.get_experiment_by_name(cfg.tracking.experiment)
+    if experiment is None:
+        names = [e.name for e in client.search_experiments()]
+        raise ConfigError(
+            f"tracking.experiment={cfg.tracking.experiment!r} is not in {cfg.tracking.uri}; "
+            f"experiments there: {', '.join(names) or 'none'}"
+        )
+    return client, client, tracking.search_runs(client, experiment.experiment_id)
+
+
+def runs_place(cfg: DictConfig) -> str:
+    """Where the compared runs are, as an error message names it."""
+    if cfg.get("bundle"):
+        return f"bundle {str(cfg.bundle)!r}"
+    return f"experiment {cfg.tracking.experiment!r}"
+
+
+def source_name(cfg: DictConfig) -> str:
+    """How a report names where its runs came from (``source=`` overrides it)."""
+    if cfg.get("source"):
+        return str(cfg.source)
+    if cfg.get("bundle"):
+        return f"bundle {cfg.bundle}"
+    return f"{tracking.redacted_uri(cfg.tracking.uri)}, {runs_place(cfg)}"
 
 
 def _arms_from(reference, arms: list[Arm]) -> dict[str, list[str]]:

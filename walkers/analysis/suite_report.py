@@ -24,7 +24,7 @@ from omegaconf import DictConfig, OmegaConf  # noqa: E402
 
 from walkers import CONF_DIR  # noqa: E402
 from walkers.analysis import stats, suite  # noqa: E402
-from walkers.analysis.comparison import build_comparison, compare, publish  # noqa: E402
+from walkers.analysis.comparison import build_comparison, compare, publish, runs_place  # noqa: E402
 from walkers.analysis.results import AXIS_NAMES, AlgoResult, Comparison  # noqa: E402
 from walkers.errors import ConfigError  # noqa: E402
 from walkers.metrics import normalized_score  # noqa: E402
@@ -97,8 +97,8 @@ def compare_datasets(cfg: DictConfig) -> tuple[str, Path]:
         offline = [r for r in comparison.algos if r.x_axis == GRADIENT_STEPS]
         if not offline:
             raise ConfigError(
-                f"datasets: {name!r} has no finished offline runs of {cfg.env.id} in experiment "
-                f"{cfg.tracking.experiment!r}"
+                f"datasets: {name!r} has no finished offline runs of {cfg.env.id} in "
+                f"{runs_place(cfg)}"
             )
         dataset = offline[0].dataset  # the name as recorded: with its version
         if dataset in built:

@@ -66,6 +66,7 @@ def test_an_obvious_difference_stops_at_the_minimum_seeds_and_a_rerun_runs_nothi
     assert len(job_runs(store)) == 10
 
 
+@pytest.mark.slow  # `make test-slow`: a study of two rounds
 def test_a_rounds_new_seeds_train_as_one_population_each_its_own_job(store):
     """seeds_as_population (the default on a GPU, forced here on the CPU): each arm's five fresh
     seeds are one population job, and each member is the run its seed's job would be."""

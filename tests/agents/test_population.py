@@ -257,6 +257,7 @@ def test_a_population_job_run_again_continues_its_member_runs(store):
     )
 
 
+@pytest.mark.slow  # `make test-slow`: trains every seed twice over
 def test_seeds_that_finished_alone_leave_their_population_job_nothing_to_train(store):
     """A job key and run name with {seed} in them name each run by its own seed, alone or as a
     member (make baseline's keys): once seeds 0 and 1 finished as single runs, the population

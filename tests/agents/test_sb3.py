@@ -28,6 +28,7 @@ from tests.conftest import (
 )
 from walkers.agents.factory import build_agent
 from walkers.analysis.comparison import build_comparison
+from walkers.errors import ConfigError
 from walkers.train import train
 from walkers.training.checkpoint_evaluation import evaluate
 from walkers.training.envs import env_spaces, make_env
@@ -302,30 +303,38 @@ def test_ppo_maps_onto_sb3s_ppo_with_vecnormalize():
 
 
 # --- refused ------------------------------------------------------------------------------------
-@pytest.mark.parametrize(
-    "overrides, names",
-    [
-        (
-            ["algo=reinforce", "impl=sb3"],
-            ["impl=sb3", "algo=reinforce", "td3, ddpg, sac, crossq, ppo"],
-        ),
-        (["algo=dt", "impl=sb3", "dataset=x"], ["algo=dt", "td3, ddpg, sac, crossq, ppo"]),
-        (["algo=ppo", "impl=sb3", "algo.target_kl=0.02"], ["algo.target_kl=0.02", "null"]),
-        (
-            ["algo=ddpg", "impl=sb3", "algo.critic_architecture=layernorm_branch"],
-            ["algo.critic_architecture='layernorm_branch'", "mlp"],
-        ),
-        (["algo=sac", "impl=sb3", "algo.alpha_lr=1e-3"], ["algo.alpha_lr=0.001", "algo.lr"]),
-        (["algo=td3", "impl=sb3", "population=2"], ["population=2", "impl=sb3"]),
-        (["algo=td3", "impl=sb4"], ["impl='sb4'", "walkers, sb3"]),
-    ],
-)
+SB3_CANNOT = [
+    (["algo=reinforce", "impl=sb3"], ["impl=sb3", "algo=reinforce", "td3, ddpg, sac, crossq, ppo"]),
+    (["algo=dt", "impl=sb3", "dataset=x"], ["algo=dt", "td3, ddpg, sac, crossq, ppo"]),
+    (["algo=ppo", "impl=sb3", "algo.target_kl=0.02"], ["algo.target_kl=0.02", "null"]),
+    (
+        ["algo=ddpg", "impl=sb3", "algo.critic_architecture=layernorm_branch"],
+        ["algo.critic_architecture='layernorm_branch'", "mlp"],
+    ),
+    (["algo=sac", "impl=sb3", "algo.alpha_lr=1e-3"], ["algo.alpha_lr=0.001", "algo.lr"]),
+    (["algo=td3", "impl=sb3", "population=2"], ["population=2", "impl=sb3"]),
+    (["algo=td3", "impl=sb4"], ["impl='sb4'", "walkers, sb3"]),
+]
+
+
+@pytest.mark.parametrize("overrides, names", SB3_CANNOT, ids=lambda c: " ".join(c))
 def test_what_sb3_cannot_express_is_refused_in_one_line(tmp_path, overrides, names):
     store = new_store(tmp_path)
+    with pytest.raises(ConfigError) as refused:
+        train(compose_cfg(["env=pendulum", *TINY, *overrides, *store["overrides"]]))
+    error = str(refused.value)
+    assert "\n" not in error and all(name in error for name in names), error
+    assert all_runs(store["client"]) == []
+    assert not (tmp_path / "work").exists()
+
+
+def test_a_refusal_reaches_the_command_line_as_one_line_and_exit_2(tmp_path):
+    store = new_store(tmp_path)
+    overrides, names = SB3_CANNOT[0]
     result = run_cli(["env=pendulum", *overrides, *store["overrides"]], cwd=tmp_path)
     error = one_line_error(result)
     assert all(name in error for name in names), error
-    assert not (tmp_path / "mlflow.db").exists() or all_runs(store["client"]) == []
+    assert all_runs(store["client"]) == []
     assert not (tmp_path / "work").exists()
 
 

@@ -395,6 +395,7 @@ def test_offline_algorithms_are_compared_each_at_its_own_budget(chain, tmp_path)
 SECOND = "walkers/pendulum/tiny-td3-only-v0"
 
 
+@pytest.mark.slow  # `make test-slow`: collects a second dataset and trains both offline arms on it
 def test_a_suite_of_datasets_aggregates_the_offline_arms_across_them(chain, tmp_path):
     """TD3+BC and DT, 2 seeds each, on two datasets of one env: each dataset's report, then
     the suite's over the offline arms (normalized on each dataset's references, the data's own

@@ -99,6 +99,8 @@ def test_performance_profile_counts_runs_above_tau():
     assert profile.tolist() == pytest.approx([1.0, 2 / 3, 0.0])
 
 
+@pytest.mark.slow  # `make test-slow`: trains two envs (the default suite renders suite reports
+# from their bundles: results/tiny, results/ppo_walker2d)
 def test_a_suite_report_over_two_envs(store):
     runs = run_cli(
         ["-m", "algo=reinforce,td3", "env=pendulum,inverted_pendulum", "seed=0,1",

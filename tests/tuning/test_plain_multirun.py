@@ -12,6 +12,7 @@ from tests.conftest import TINY, all_runs, one_line_error, run_cli
 JOBS = ["-m", "hydra/launcher=joblib", "hydra.launcher.n_jobs=4", "algo=reinforce", "env=pendulum"]
 
 
+@pytest.mark.slow  # `make test-slow`: four jobs racing to create one sqlite store
 def test_jobs_launched_together_into_a_new_sqlite_store_all_finish(tmp_path):
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"  # a store nobody has opened yet
 

@@ -162,6 +162,7 @@ def test_sweep_direction_follows_the_metric():
             sweep_direction(metric, direction)
 
 
+@pytest.mark.slow  # `make test-slow`: a whole sweep, then a run of its preset
 def test_best_trial_becomes_a_preset(store):
     study = sweep(store, "hydra.sweeper.n_trials=2")
     storage = f"sqlite:///{store['path'] / 'optuna.db'}"

@@ -12,6 +12,7 @@ from mlflow.tracking import MlflowClient
 
 from tests.conftest import all_runs, compose_cfg, new_store, one_line_error, run_cli
 from tests.study_kit import OBVIOUS, arms, export, ingest, study
+from walkers.analysis.comparison import compare
 from walkers.errors import ConfigError
 from walkers.export import export as export_runs
 from walkers.tracking import bundles
@@ -32,6 +33,36 @@ def report(store, *args: str) -> str:
     for run in all_runs(store["client"]):
         text = text.replace(run.info.run_id, run.data.tags.get(bundles.ORIGIN_TAG, run.info.run_id))
     return text
+
+
+#: How the reports compared here name their runs' source (the store's path would differ).
+SOURCE = "source=the tiny study"
+
+
+def compared_where_it_lies(bundle, cwd) -> str:
+    """``walkers.compare bundle=BUNDLE`` in-process, run from ``cwd``: its report's text."""
+    cwd.mkdir()
+    cfg = compose_cfg(
+        ["env=pendulum", f"bundle={bundle}", f"out={cwd / 'report'}", "log_report=false", SOURCE,
+         f"tracking.uri=sqlite:///{cwd / 'never.db'}", f"work_dir={cwd / 'work'}"],
+        config_name="compare",
+    )  # fmt: skip
+    compare(cfg)
+    return (cwd / "report" / "report.md").read_text() + (
+        cwd / "report" / "summary.json"
+    ).read_text()
+
+
+def test_a_bundle_compared_where_it_lies_names_what_is_wrong_in_one_line(studied, tmp_path):
+    _, bundle, _ = studied
+    wrong = compose_cfg([f"bundle={bundle}", "env=hopper", "log_report=false"],
+                        config_name="compare")  # fmt: skip
+    with pytest.raises(ConfigError) as refused:
+        compare(wrong)
+    assert f"no finished Hopper-v5 runs for any in bundle '{bundle}'" in str(refused.value)
+    assert "algorithms with runs there: " in str(refused.value)
+    with pytest.raises(ConfigError, match="is not a bundle"):
+        compare(compose_cfg([f"bundle={tmp_path / 'nope'}"], config_name="compare"))
 
 
 @pytest.fixture(scope="module")
@@ -80,7 +111,12 @@ def test_an_imported_study_reports_to_the_digit_and_a_second_import_adds_nothing
         if copy.data.tags.get("walkers.kind") != "ab":  # a training run's composed config
             names = [f.path for f in target["client"].list_artifacts(copy.info.run_id)]
             assert "config.yaml" in names
-    assert report(target) == report(source)
+    in_its_store = report(source, SOURCE)
+    assert report(target, SOURCE) == in_its_store
+    # and read where it lies (``walkers.compare bundle=``, what results/ pages are made by): the
+    # same report, and nothing written but it
+    assert compared_where_it_lies(bundle, tmp_path / "in_place") == in_its_store
+    assert [p.name for p in (tmp_path / "in_place").iterdir()] == ["report"]
 
     second = ingest(target, bundle)
     assert second.returncode == 0, second.stderr[-2000:]
@@ -99,33 +135,6 @@ def test_an_imported_study_reports_to_the_digit_and_a_second_import_adds_nothing
     assert export(target, "study=t", f"out={back}").returncode == 0
     home = ingest(source, back)
     assert home.returncode == 0 and "imported 0 runs" in home.stdout, home.stderr[-2000:]
-
-
-def test_a_bundle_is_compared_where_it_lies_as_its_runs_are_in_their_store(studied, tmp_path):
-    """``walkers.compare bundle=PATH``: the report its runs give in the store that made them,
-    and nothing written but the report (what ``python -m walkers.results`` builds pages with)."""
-    source, bundle, _ = studied
-    named = "source=the tiny study"
-    result = run_cli(
-        ["env=pendulum", f"bundle={bundle}", "out=report", "log_report=false", named],
-        cwd=tmp_path,
-        module="walkers.compare",
-    )
-    assert result.returncode == 0, result.stderr[-2000:]
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["report"]  # no store, no scratch
-    here = (tmp_path / "report" / "report.md").read_text()
-    here += (tmp_path / "report" / "summary.json").read_text()
-    assert here == report(source, named)
-
-    wrong = run_cli(["env=hopper", f"bundle={bundle}", "log_report=false"], cwd=tmp_path,
-                    module="walkers.compare")  # fmt: skip
-    line = one_line_error(wrong)
-    assert f"no finished Hopper-v5 runs for any in bundle '{bundle}'" in line, line
-    assert "algorithms with runs there: " in line
-    missing = one_line_error(run_cli([f"bundle={tmp_path / 'nope'}"], cwd=tmp_path,
-                                     module="walkers.compare"))  # fmt: skip
-    assert "is not a bundle" in missing, missing
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["report"]
 
 
 def _rewritten(bundle, tmp_path, change) -> str:

@@ -103,6 +103,8 @@ def test_seeds_as_population_is_checked_in_one_line(store):
     assert job_runs(store) == []
 
 
+@pytest.mark.slow  # `make test-slow`: a whole study (the rule's error rates are simulated in
+# tests/analysis/test_sequential.py in the default suite)
 def test_two_identical_arms_end_equal_or_not_settled_never_better(store):
     same = arms("{a:'algo=reinforce',b:'algo=reinforce'}")
     result = run_cli(study(store, *same, "hydra.sweeper.smallest_difference=50"), cwd=store["path"])

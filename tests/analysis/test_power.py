@@ -12,6 +12,8 @@ from scipy import stats as sps
 
 from tests.conftest import TINY, compose_cfg, one_line_error, run_cli
 from walkers.analysis import power
+from walkers.errors import ConfigError
+from walkers.plan import make_plan
 from walkers.train import train
 
 ALPHA = 0.05
@@ -138,5 +140,16 @@ def test_plan_prints_seeds_and_cost_from_a_real_pilot(pilot):
     ],
 )
 def test_plan_refuses_bad_input_in_one_line(pilot, args, words):
-    error = one_line_error(plan_cli(pilot, *args))
-    assert all(word in error for word in words), error
+    cfg = compose_cfg(
+        ["env=pendulum", f"tracking.uri={pilot['uri']}", "tracking.experiment=walkers", *args],
+        config_name="plan",
+    )
+    with pytest.raises(ConfigError) as refused:
+        make_plan(cfg)
+    error = str(refused.value)
+    assert "\n" not in error and all(word in error for word in words), error
+
+
+def test_a_refused_plan_is_one_line_and_exit_2_on_the_command_line(pilot):
+    error = one_line_error(plan_cli(pilot, "algos=[reinforce,td3]", "baseline=sac"))
+    assert "baseline='sac'" in error and "reinforce, td3" in error, error

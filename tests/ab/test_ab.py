@@ -14,6 +14,7 @@ from tests.study_kit import OBVIOUS, OBVIOUS_TD3, arms, job_runs, study, study_r
 from walkers import CONF_DIR
 from walkers.ab.spec import StudySpec
 from walkers.errors import ConfigError
+from walkers.plan import make_plan
 from walkers.tracking.bundles import read_bundle
 from walkers.training.validate import validate
 
@@ -204,20 +205,19 @@ def test_a_study_that_can_never_decide_is_refused_with_nothing_created(store):
     assert [e.name for e in store["client"].search_experiments()] == ["Default"]
     assert not (store["path"] / "work").exists() and not (store["path"] / "multirun").exists()
     # walkers.plan shows the same design look by look, and the sweeper's verdict on it
-    plan = run_cli(["study=ab/tiny", *NEVER_DECIDES], cwd=store["path"], module="walkers.plan")
-    assert plan.returncode == 2  # a study is named by its file or conf/ab name, not overrides
+    with pytest.raises(Exception, match="hydra"):  # plan names a study by file or conf/ab name,
+        compose_cfg(["study=ab/tiny", *NEVER_DECIDES], config_name="plan")  # not by overrides
     study_file = store["path"] / "mine.yaml"
     study_file.write_text(
         "hydra:\n  sweeper:\n    name: mine\n    arms: {td3: algo=td3, ddpg: algo=ddpg}\n"
         "    envs: [bipedal_walker, hopper]\n    seeds: {min: 3, max: 4, per_round: 1}\n"
         "    score: final/return_mean\n    alpha: 0.05\n    smallest_difference: 10\n"
     )
-    plan = run_cli([f"study={study_file}"], cwd=store["path"], module="walkers.plan")
-    assert plan.returncode == 0, plan.stderr[-2000:]
-    assert "| 1 | 3 | 0.0138 | 0.1 | no | no | 5 |" in plan.stdout
-    assert "| 2 | 4 | 0.00287 | 0.0286 | no | no | 6 |" in plan.stdout
-    assert "refused by the sweeper: study 'mine': with 3 questions" in plan.stdout
-    assert "'equal' can never be answered" in plan.stdout
+    plan = make_plan(compose_cfg([f"study={study_file}"], config_name="plan"))
+    assert "| 1 | 3 | 0.0138 | 0.1 | no | no | 5 |" in plan
+    assert "| 2 | 4 | 0.00287 | 0.0286 | no | no | 6 |" in plan
+    assert "refused by the sweeper: study 'mine': with 3 questions" in plan
+    assert "'equal' can never be answered" in plan
 
 
 @pytest.mark.slow  # 10 jobs through two looks

@@ -13,8 +13,11 @@ import yaml
 
 from tests.conftest import compose_cfg, new_store, one_line_error, run_cli
 from walkers.analysis.comparison import build_comparison
+from walkers.analysis.comparison import compare as compare_in_process
 from walkers.errors import ConfigError
+from walkers.export import export
 from walkers.tracking import bundles
+from walkers.train import train as train_run
 
 TINY = [
     "env=pendulum",
@@ -26,13 +29,13 @@ TINY = [
     "tracking.experiment=ref",
     "algo.learning_starts=200",
     "algo.batch_size=32",
-    "seed=0,1",
 ]
 
 
 def train(store, algo: str) -> None:
-    result = run_cli(["-m", f"algo={algo}", *TINY, *store["overrides"]], cwd=store["path"])
-    assert result.returncode == 0, result.stderr[-3000:]
+    """Seeds 0 and 1 of ``algo``, in-process (the command line's runs are another module's)."""
+    for seed in (0, 1):
+        train_run(compose_cfg([f"algo={algo}", f"seed={seed}", *TINY, *store["overrides"]]))
 
 
 def compare(store, *args: str, out: str = "report"):
@@ -50,12 +53,8 @@ def stores(tmp_path_factory):
     theirs = new_store(tmp_path_factory.mktemp("theirs"))
     train(theirs, "td3")
     bundle = theirs["path"] / "td3_bundle"
-    done = run_cli(
-        ["tracking.experiment=ref", f"out={bundle}", f"tracking.uri={theirs['uri']}"],
-        cwd=theirs["path"],
-        module="walkers.export",
-    )
-    assert done.returncode == 0, done.stderr[-2000:]
+    settings = ["tracking.experiment=ref", f"out={bundle}", f"tracking.uri={theirs['uri']}"]
+    export(compose_cfg(settings, config_name="export"))
     ours = new_store(tmp_path_factory.mktemp("ours"))
     train(ours, "sac")
     return theirs, ours, bundle
@@ -70,10 +69,14 @@ def test_a_reference_arm_is_compared_without_being_rerun(stores):
     assert "## Arms from references" in report
     assert f"| `{bundle}` | td3 | 2 | experiment 'ref'" in report
     # the reference arm's statistics are those of its own store's report, to the digit
-    alone = compare(theirs, out="alone")
-    assert alone.returncode == 0, alone.stderr[-2000:]
+    alone = theirs["path"] / "alone"
+    compare_in_process(compose_cfg(
+        ["env=pendulum", "tracking.experiment=ref", f"out={alone}", "log_report=false",
+         *theirs["overrides"]],
+        config_name="compare",
+    ))  # fmt: skip
     here = json.loads((ours["path"] / "report" / "summary.json").read_text())["algos"]["td3"]
-    there = json.loads((theirs["path"] / "alone" / "summary.json").read_text())["algos"]["td3"]
+    there = json.loads((alone / "summary.json").read_text())["algos"]["td3"]
     assert here == there
 
 

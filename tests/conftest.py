@@ -92,10 +92,11 @@ def _empty_store_file() -> Path:
 
 
 def new_store(path: Path, template: Path | None = None) -> dict:
-    """A fresh sqlite MLflow store and scratch dir in ``path``: overrides pointing runs there.
-    Its file is a copy of an empty store (``template``, by default this process's)."""
+    """A sqlite MLflow store and scratch dir in ``path``: overrides pointing runs there. A new
+    store's file is a copy of an empty one (``template``, by default this process's)."""
     path.mkdir(parents=True, exist_ok=True)
-    shutil.copyfile(template or _store_template(), path / "mlflow.db")
+    if not (path / "mlflow.db").exists():
+        shutil.copyfile(template or _store_template(), path / "mlflow.db")
     uri = f"sqlite:///{path / 'mlflow.db'}"
     return {
         "uri": uri,

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import random
 import signal
+import time
 
 import pytest
 from hydra import initialize_config_dir
@@ -46,15 +47,28 @@ def sweepers_loader():
         yield kept.hydra_context.config_loader, master
 
 
+def _composition_seconds(loader, master) -> float:
+    """The median of three undisturbed compositions on this machine, to aim the timers by."""
+    times = []
+    for _ in range(3):
+        start = time.perf_counter()
+        loader.load_sweep_config(master, ["algo=sac", "env=hopper", "seed=0"])
+        times.append(time.perf_counter() - start)
+    return sorted(times)[1]
+
+
 def test_a_signal_inside_a_jobs_composition_stops_the_driver_after_it(sweepers_loader):
     loader, master = sweepers_loader
+    # Timers spread over four compositions' time: about a quarter fire inside one, the rest
+    # after it (cancelled). A fixed spread missed every end on a slow CI machine (stop 62).
+    latest = 4 * _composition_seconds(loader, master)
     before = signal.getsignal(signal.SIGALRM)
     moments = random.Random(0)
     outcomes = {"composed": 0, "interrupted": 0}
     try:
         for seed in range(100):
             signal.signal(signal.SIGALRM, interrupts._Stopping())  # a fresh driver's handler
-            signal.setitimer(signal.ITIMER_REAL, moments.uniform(0.0005, 0.15))
+            signal.setitimer(signal.ITIMER_REAL, moments.uniform(0.0005, latest))
             try:
                 cfg = loader.load_sweep_config(master, ["algo=sac", "env=hopper", f"seed={seed}"])
                 signal.setitimer(signal.ITIMER_REAL, 0)

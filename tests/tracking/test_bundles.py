@@ -137,6 +137,27 @@ def test_an_imported_study_reports_to_the_digit_and_a_second_import_adds_nothing
     assert home.returncode == 0 and "imported 0 runs" in home.stdout, home.stderr[-2000:]
 
 
+def test_a_study_that_trains_nothing_bundles_the_runs_it_decided_on(studied, tmp_path):
+    """Its jobs' runs were in the store before its own run began (imported, the imported study
+    run then deleted in the UI): it trains nothing, and the bundle it writes holds its run and
+    the ten runs it decided on, not its run alone (the CrossQ study's rebuild, stop 62)."""
+    _, bundle, _ = studied
+    target = new_store(tmp_path)
+    bundles.import_bundle(target["client"], bundle)
+    (earlier,) = [r for r in all_runs(target["client"]) if r.data.tags.get("walkers.kind") == "ab"]
+    target["client"].delete_run(earlier.info.run_id)
+
+    again = run_cli(study(target, *OBVIOUS), cwd=target["path"])
+    assert again.returncode == 0, again.stderr[-2000:]
+    assert "short is better than long on pendulum (5 seeds per arm" in again.stdout
+    own = [r for r in all_runs(target["client"]) if r.data.tags.get("walkers.kind") == "ab"]
+    assert len(own) == 1 and own[0].info.run_id != earlier.info.run_id
+    written = bundles.read_bundle(target["path"] / "reports/ab_tiny/bundle")["runs"]
+    keys = sorted(r["tags"].get("walkers.job_key", "the study") for r in written)
+    jobs = [f"ab/t/{arm}/pendulum/{seed}" for arm in ("long", "short") for seed in range(5)]
+    assert keys == sorted(["the study", *jobs])
+
+
 def _rewritten(bundle, tmp_path, change) -> str:
     copy = tmp_path / "edited"
     shutil.copytree(bundle, copy)

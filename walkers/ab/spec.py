@@ -28,9 +28,8 @@ from hydra.errors import OverrideParseException
 from walkers import CONF_DIR
 from walkers.analysis.sequential import Design, Question
 from walkers.errors import ConfigError
+from walkers.tracking.names import study_job_key, study_jobs_prefix, study_of_job_key
 
-#: A job key: what finds a job's run again, whoever runs the study's command again.
-JOB_KEY_PREFIX = "ab"
 #: Scores a study may decide on (the aggregate averages normalized returns).
 SCORES = ("final/return_mean", "final/return_last10", "final/auc")
 _NAME = re.compile(r"^[A-Za-z0-9_.-]+$")
@@ -197,20 +196,18 @@ class StudySpec:
         return next(arm for arm in self.arms if arm.name == name)
 
     def job_key(self, arm: str, env: str, seed: int) -> str:
-        return f"{JOB_KEY_PREFIX}/{self.name}/{arm}/{env}/{seed}"
+        return study_job_key(self.name, arm, env, seed)
 
     @property
     def job_key_prefix(self) -> str:
-        return f"{JOB_KEY_PREFIX}/{self.name}/"
+        return study_jobs_prefix(self.name)
 
     def parse_job_key(self, key: str) -> tuple[str, str, int] | None:
         """``(arm, env, seed)`` of one of this study's job keys, else None."""
-        if not key.startswith(self.job_key_prefix):
+        place = study_of_job_key(key)
+        if place is None or place[0] != self.name:
             return None
-        parts = key[len(self.job_key_prefix) :].split("/")
-        if len(parts) != 3 or not parts[2].isdigit():
-            return None
-        return parts[0], parts[1], int(parts[2])
+        return place[1:]
 
     def design_params(self) -> dict[str, str]:
         """What fixes the study's test: logged once as params, refused if a rerun differs."""

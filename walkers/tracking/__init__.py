@@ -45,6 +45,9 @@ _HOMES = {
         "X_AXIS_TAG",
         "differing_keys",
         "status_after",
+        "study_job_key",
+        "study_jobs_prefix",
+        "study_of_job_key",
     ),
     "walkers.tracking.tracker": (
         "STORE_PATIENCE_S",

@@ -59,6 +59,8 @@ from walkers.tracking.names import (
     ORIGIN_TAG,
     STUDY_KIND,
     STUDY_TAG,
+    study_jobs_prefix,
+    study_of_job_key,
 )
 
 log = logging.getLogger("walkers")
@@ -105,7 +107,11 @@ def select_runs(
 ) -> list:
     """The runs to export: a study's (its own run and its jobs'), else the whole experiment;
     then those whose tags equal ``where`` (e.g. ``{algo: td3, env: Walker2d-v5}``) and whose
-    status is in ``statuses`` (a study's own run is kept whatever its status)."""
+    status is in ``statuses`` (a study's own run is kept whatever its status).
+
+    A study's jobs are the runs nested under its run and the runs keyed as its jobs: those it
+    decided on without training them (imported from a bundle, or trained before its run began)
+    nest elsewhere or nowhere."""
     runs = search_runs(client, experiment_id)
     if study is not None:
         own = [
@@ -115,9 +121,14 @@ def select_runs(
         ]
         if not own:
             raise ConfigError(f"study={study!r} has no run in this experiment: nothing exported")
-        ids = {r.info.run_id for r in own}
-        jobs = [r for r in runs if r.data.tags.get("mlflow.parentRunId") in ids]
-        runs = own + [r for r in jobs if r.info.status in statuses]
+        ids, prefix = {r.info.run_id for r in own}, study_jobs_prefix(study)
+        jobs = [
+            r
+            for r in runs
+            if r.data.tags.get("mlflow.parentRunId") in ids
+            or r.data.tags.get(JOB_KEY_TAG, "").startswith(prefix)
+        ]
+        runs = own + [r for r in jobs if r.info.status in statuses and r.info.run_id not in ids]
     else:
         runs = [r for r in runs if r.info.status in statuses]
     runs = [r for r in runs if all(r.data.tags.get(k) == str(v) for k, v in where.items())]
@@ -446,8 +457,8 @@ class BundleRuns:
 
 def _study_arm(record: dict) -> str | None:
     """The arm of the study that made a run (its job key ``ab/<study>/<arm>/<env>/<seed>``)."""
-    parts = record["tags"].get(JOB_KEY_TAG, "").split("/")
-    return parts[2] if len(parts) == 5 and parts[0] == "ab" else None
+    place = study_of_job_key(record["tags"].get(JOB_KEY_TAG, ""))
+    return place[1] if place else None
 
 
 def _as_run(record: dict, extra_params: dict[str, str]) -> Run:

@@ -34,6 +34,27 @@ LOGGED_THROUGH_TAG = "walkers.logged_through"
 #: Tags of an A/B study's own run: ``walkers.kind=ab`` and ``walkers.ab=<study name>``; its jobs'
 #: runs nest under it (``mlflow.parentRunId``).
 STUDY_KIND, STUDY_TAG = "ab", "walkers.ab"
+
+
+def study_job_key(study: str, arm: str, env: str, seed: int) -> str:
+    """A study's job key, ``ab/<study>/<arm>/<env>/<seed>``: what finds a job's run again,
+    whichever command (or store it was imported from) made it."""
+    return f"{study_jobs_prefix(study)}{arm}/{env}/{seed}"
+
+
+def study_jobs_prefix(study: str) -> str:
+    """What every job key of ``study`` starts with."""
+    return f"{STUDY_KIND}/{study}/"
+
+
+def study_of_job_key(key: str) -> tuple[str, str, str, int] | None:
+    """``(study, arm, env, seed)`` of a study's job key, else None."""
+    parts = key.split("/")
+    if len(parts) != 5 or parts[0] != STUDY_KIND or not parts[4].isdigit():
+        return None
+    return parts[1], parts[2], parts[3], int(parts[4])
+
+
 #: Tag: the run id in the store a run was first logged to (set on every copy a bundle imports).
 ORIGIN_TAG = "walkers.origin"
 

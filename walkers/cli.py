@@ -17,8 +17,7 @@ from omegaconf.errors import InterpolationKeyError, InterpolationResolutionError
 
 from walkers import CONF_DIR as _CONF_DIR
 from walkers.errors import CheckpointError, ConfigError
-from walkers.secrets import has_password, redacted
-from walkers.tracking.client import refuse_password
+from walkers.secrets import has_password, redacted, refuse_password
 
 CONF_DIR = str(_CONF_DIR)
 #: Sweep values Hydra can enumerate (a,b,c / range()); Optuna's interval() etc. are the sweeper's.

@@ -6,7 +6,11 @@ whatever shows a URL (a log line, an MLflow param, a report) shows :func:`redact
 
 from __future__ import annotations
 
+from urllib.parse import urlsplit, urlunsplit
+
 from sqlalchemy.engine import make_url
+
+from walkers.errors import ConfigError
 
 
 def redacted(url: str | None) -> str | None:
@@ -25,3 +29,25 @@ def has_password(url: str | None) -> bool:
         return bool(url) and make_url(url).password is not None
     except Exception:  # not a URL SQLAlchemy reads: nothing to hide
         return False
+
+
+def redacted_uri(uri: str) -> str:
+    """``uri`` with the password of its user part, if any, shown as ``***``."""
+    parts = urlsplit(uri)
+    if parts.password is None:
+        return uri
+    host = parts.netloc.rpartition("@")[2]
+    return urlunsplit(parts._replace(netloc=f"{parts.username}:***@{host}"))
+
+
+def refuse_password(uri: str | None) -> None:
+    """A tracking URI that carries a password is a :class:`ConfigError`: stores are given by
+    reference. Checked before Hydra writes a job's files (:mod:`walkers.cli`) and again on
+    connecting."""
+    if uri and urlsplit(uri).password is not None:
+        raise ConfigError(
+            f"tracking.uri={redacted_uri(uri)!r} carries a password, which would reach MLflow "
+            "params, Ray's logs and Hydra's files: leave it out of the URI and give it by "
+            "reference (MLFLOW_TRACKING_USERNAME / MLFLOW_TRACKING_PASSWORD for a server, "
+            "PGPASSWORD or ~/.pgpass for a PostgreSQL store)"
+        )

@@ -19,20 +19,27 @@ from walkers.tracking import bundles
 
 
 def report(store, *args: str) -> str:
-    """The report of the study's runs, with each run id replaced by the run's origin."""
+    """The report of the study's runs (``walkers.compare`` in-process: its command line is
+    tests/analysis/test_compare.py's), with each run id replaced by the run's origin."""
     out = store["path"] / "report"
-    result = run_cli(
-        ["env=pendulum", "tracking.experiment=ab_tiny", f"out={out}", "log_report=false",
-         *store["overrides"], *args],
-        cwd=store["path"],
-        module="walkers.compare",
+    compare(
+        compose_cfg(
+            ["env=pendulum", "tracking.experiment=ab_tiny", f"out={out}", "log_report=false",
+             *store["overrides"], *args],
+            config_name="compare",
+        )
     )  # fmt: skip
-    assert result.returncode == 0, result.stderr[-2000:]
     text = (out / "report.md").read_text() + (out / "summary.json").read_text()
     text = text.replace(str(store["path"]), "<store>")
     for run in all_runs(store["client"]):
         text = text.replace(run.info.run_id, run.data.tags.get(bundles.ORIGIN_TAG, run.info.run_id))
     return text
+
+
+def exported(store, *args: str) -> bundles.Exported:
+    """``walkers.export`` in-process (the fixture runs its command line)."""
+    overrides = ["tracking.experiment=ab_tiny", *args, f"tracking.uri={store['uri']}"]
+    return export_runs(compose_cfg(overrides, config_name="export"))
 
 
 #: How the reports compared here name their runs' source (the store's path would differ).
@@ -118,9 +125,8 @@ def test_an_imported_study_reports_to_the_digit_and_a_second_import_adds_nothing
     assert compared_where_it_lies(bundle, tmp_path / "in_place") == in_its_store
     assert [p.name for p in (tmp_path / "in_place").iterdir()] == ["report"]
 
-    second = ingest(target, bundle)
-    assert second.returncode == 0, second.stderr[-2000:]
-    assert "imported 0 runs" in second.stdout and "(11 already there)" in second.stdout
+    second = bundles.import_bundle(target["client"], bundle)
+    assert second.added == [] and second.present == 11
     assert len(all_runs(target["client"])) == 11
 
     # the study command on the new store finds it done: nothing runs
@@ -132,9 +138,8 @@ def test_an_imported_study_reports_to_the_digit_and_a_second_import_adds_nothing
 
     # and a bundle of the new store's copies goes home as nothing new: origins travel
     back = target["path"] / "back"
-    assert export(target, "study=t", f"out={back}").returncode == 0
-    home = ingest(source, back)
-    assert home.returncode == 0 and "imported 0 runs" in home.stdout, home.stderr[-2000:]
+    assert exported(target, "study=t", f"out={back}").runs == 11
+    assert bundles.import_bundle(source["client"], back).added == []
 
 
 def test_a_study_that_trains_nothing_bundles_the_runs_it_decided_on(studied, tmp_path):
@@ -228,13 +233,13 @@ def test_a_run_that_conflicts_with_a_finished_one_is_refused_before_anything_is_
     experiment_id = client.create_experiment("ab_tiny")
     theirs = client.create_run(experiment_id, tags={"walkers.job_key": "ab/t/short/pendulum/3"})
     client.set_terminated(theirs.info.run_id, "FINISHED")
-    line = one_line_error(ingest(target, bundle))
-    assert f"conflicts with run {theirs.info.run_id} already FINISHED" in line, line
-    assert "(ab/t/short/pendulum/3)" in line
+    with pytest.raises(ConfigError) as refused:  # in-process: the truncated bundle's CLI case
+        bundles.import_bundle(client, bundle)  # above proves the one line
+    assert f"conflicts with run {theirs.info.run_id} already FINISHED" in str(refused.value)
+    assert "(ab/t/short/pendulum/3)" in str(refused.value)
     assert [r.info.run_id for r in all_runs(client)] == [theirs.info.run_id]
     # into another experiment it goes whole
-    elsewhere = ingest(target, bundle, "into=ab_tiny_copy")
-    assert elsewhere.returncode == 0 and "imported 11 runs" in elsewhere.stdout
+    assert len(bundles.import_bundle(client, bundle, "ab_tiny_copy").added) == 11
 
 
 def test_a_bad_export_is_refused_in_one_line_and_writes_nothing(studied):
@@ -251,12 +256,13 @@ def test_the_same_export_again_says_how_to_write_it_anew_and_replace_true_does(s
     shutil.copytree(bundle, out)
     before = (out / bundles.RUNS_FILE).read_bytes()
     runs = bundles.read_bundle(out)["runs"]
-    line = one_line_error(export(source, "study=t", f"out={out}"))
-    assert f"out='{out}' holds a bundle already: pass replace=true to write it anew" in line
+    with pytest.raises(ConfigError) as refused:  # in-process: the CLI case above proves the line
+        exported(source, "study=t", f"out={out}")
+    expected = f"out='{out}' holds a bundle already: pass replace=true to write it anew"
+    assert expected in str(refused.value)
     assert (out / bundles.RUNS_FILE).read_bytes() == before  # untouched
     (out / bundles.RUNS_FILE).write_bytes(b"stale")  # an earlier export, which replace swaps
-    again = export(source, "study=t", f"out={out}", "replace=true")
-    assert again.returncode == 0 and "exported 11 runs" in again.stdout, again.stderr[-2000:]
+    assert exported(source, "study=t", f"out={out}", "replace=true").runs == 11
     assert bundles.read_bundle(out)["runs"] == runs  # the same runs, written anew
     assert sorted(p.name for p in tmp_path.iterdir()) == ["again"]  # no staging left beside it
 
@@ -272,7 +278,7 @@ def test_a_bundle_written_anew_by_later_code_keeps_the_fingerprints_of_untouched
 
     _, bundle, _ = studied
     elsewhere = new_store(tmp_path)  # the runs as trained by an older commit, in its store
-    assert ingest(elsewhere, bundle).returncode == 0
+    bundles.import_bundle(elsewhere["client"], bundle)
     jobs = [r for r in all_runs(elsewhere["client"]) if r.data.tags.get("walkers.job_key")]
     for run in jobs:
         elsewhere["client"].delete_tag(run.info.run_id, bundles.FINGERPRINT_TAG)
@@ -282,9 +288,8 @@ def test_a_bundle_written_anew_by_later_code_keeps_the_fingerprints_of_untouched
     out = tmp_path / "results"
     shutil.copytree(bundle, out)
 
-    again = export(elsewhere, "study=t", f"out={out}", "replace=true")
+    exported(elsewhere, "study=t", f"out={out}", "replace=true")
 
-    assert again.returncode == 0, again.stderr[-2000:]
     kept = {r["origin"]: r["fingerprint"] for r in bundles.read_bundle(out)["runs"]}
     earlier = {r["origin"]: r["fingerprint"] for r in bundles.read_bundle(bundle)["runs"]}
     origin = trained_on.data.tags[bundles.ORIGIN_TAG]

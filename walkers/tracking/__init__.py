@@ -20,12 +20,12 @@ _HOMES = {
         "get_or_create_experiment",
         "metric_history",
         "quoted",
-        "redacted_uri",
         "require_run",
         "search_runs",
         "tags_equal",
         "ui_url",
     ),
+    "walkers.secrets": ("redacted_uri",),  # imports no MLflow either
     "walkers.tracking.names": (
         "ABSENT",
         "END_REASON_TAG",

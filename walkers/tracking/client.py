@@ -16,13 +16,13 @@ import time
 import urllib.request
 from collections.abc import Mapping
 from pathlib import Path
-from urllib.parse import urlsplit, urlunsplit
 
 from mlflow.exceptions import MlflowException
 from mlflow.tracking import MlflowClient
 
 from walkers.errors import CheckpointError, ConfigError
 from walkers.interrupts import shielded
+from walkers.secrets import refuse_password
 
 log = logging.getLogger("walkers.tracking")
 
@@ -119,19 +119,6 @@ def get_or_create_experiment(client: MlflowClient, name: str) -> str:
         return experiment.experiment_id
 
 
-def refuse_password(uri: str | None) -> None:
-    """A tracking URI that carries a password is a :class:`ConfigError`: stores are given by
-    reference. Checked before Hydra writes a job's files (:mod:`walkers.cli`) and again on
-    connecting."""
-    if uri and urlsplit(uri).password is not None:
-        raise ConfigError(
-            f"tracking.uri={redacted_uri(uri)!r} carries a password, which would reach MLflow "
-            "params, Ray's logs and Hydra's files: leave it out of the URI and give it by "
-            "reference (MLFLOW_TRACKING_USERNAME / MLFLOW_TRACKING_PASSWORD for a server, "
-            "PGPASSWORD or ~/.pgpass for a PostgreSQL store)"
-        )
-
-
 def connect(uri: str) -> StoreClient:
     """A :class:`StoreClient` for ``uri``; an unreachable or unusable store is a
     :class:`ConfigError`.
@@ -153,15 +140,6 @@ def connect(uri: str) -> StoreClient:
             "use sqlite:///<file>.db, http(s)://<server> or unset MLFLOW_TRACKING_URI"
         ) from None
     return client
-
-
-def redacted_uri(uri: str) -> str:
-    """``uri`` with the password of its user part, if any, shown as ``***``."""
-    parts = urlsplit(uri)
-    if parts.password is None:
-        return uri
-    host = parts.netloc.rpartition("@")[2]
-    return urlunsplit(parts._replace(netloc=f"{parts.username}:***@{host}"))
 
 
 def require_run(client: MlflowClient, run_id: str, uri: str, key: str = "run_id"):

@@ -3,7 +3,15 @@ and import commands run as a user runs them."""
 
 from __future__ import annotations
 
+import pytest
+from hydra import initialize_config_dir
+from hydra.core.global_hydra import GlobalHydra
+from hydra.core.hydra_config import HydraConfig
+from hydra.core.plugins import Plugins
+from hydra.types import HydraContext, RunMode
+
 from tests.conftest import all_runs, run_cli
+from walkers import CONF_DIR
 
 
 #: Two arms that cannot be confused: the same untrained REINFORCE, one with episodes half as
@@ -61,3 +69,24 @@ def ingest(store, bundle, *args: str):
         cwd=store["path"],
         module="walkers.ingest",
     )
+
+
+def refusal_in_process(store, capsys, *overrides: str) -> str:
+    """The one line a study's sweeper refuses ``overrides`` with, its checks run in this process
+    as Hydra's multirun hands them the composed config (the command line's own part, exit 2 and
+    nothing written, is proven by test_ab's never-deciding study)."""
+    args = study(store, *overrides)[1:]  # what follows -m
+    with initialize_config_dir(config_dir=str(CONF_DIR)):
+        loader = GlobalHydra.instance().config_loader()
+        config = loader.load_configuration("train", args, run_mode=RunMode.MULTIRUN)
+        HydraConfig.instance().set_config(config)
+        context = HydraContext(config_loader=loader, callbacks=None)  # no job is launched
+        sweeper = Plugins.instance().instantiate_sweeper(
+            config=config, hydra_context=context, task_function=None
+        )
+        capsys.readouterr()
+        with pytest.raises(SystemExit) as ended:
+            sweeper.sweep(arguments=list(config.hydra.overrides.task))
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert ended.value.code == 2 and len(lines) == 1, lines
+    return lines[0]

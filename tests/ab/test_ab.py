@@ -10,7 +10,15 @@ import pytest
 from omegaconf import OmegaConf
 
 from tests.conftest import all_runs, compose_cfg, one_line_error, run_cli
-from tests.study_kit import OBVIOUS, OBVIOUS_TD3, arms, job_runs, study, study_run
+from tests.study_kit import (
+    OBVIOUS,
+    OBVIOUS_TD3,
+    arms,
+    job_runs,
+    refusal_in_process,
+    study,
+    study_run,
+)
 from walkers import CONF_DIR
 from walkers.ab.spec import StudySpec
 from walkers.errors import ConfigError
@@ -92,14 +100,12 @@ def test_a_rounds_new_seeds_train_as_one_population_each_its_own_job(store):
     assert len(job_runs(store)) == 10 and "launching" not in again.stdout + again.stderr
 
 
-def test_seeds_as_population_is_checked_in_one_line(store):
-    line = one_line_error(
-        run_cli(study(store, "hydra.sweeper.seeds_as_population=yes"), cwd=store["path"])
-    )
+def test_seeds_as_population_is_checked_in_one_line(store, capsys):
+    line = refusal_in_process(store, capsys, "hydra.sweeper.seeds_as_population=yes")
     assert (
         "hydra.sweeper.seeds_as_population='yes' is not allowed: one of auto, true, false" in line
     )
-    line = one_line_error(run_cli(study(store, "population=3"), cwd=store["path"]))
+    line = refusal_in_process(store, capsys, "population=3")
     assert "population=3: the study sets population for each job" in line
     assert job_runs(store) == []
 
@@ -127,9 +133,11 @@ def test_two_identical_arms_end_equal_or_not_settled_never_better(store):
         ("seed=0,1", "seed=0,1: a study runs its own seeds and arms"),
     ],
 )
-def test_bad_studies_are_refused_in_one_line_before_anything_runs(store, override, expected):
+def test_bad_studies_are_refused_in_one_line_before_anything_runs(
+    store, capsys, override, expected
+):
     overrides = override if isinstance(override, list) else [override]
-    line = one_line_error(run_cli(study(store, *overrides), cwd=store["path"]))
+    line = refusal_in_process(store, capsys, *overrides)
     assert expected in line, line
     assert all_runs(store["client"]) == []
 

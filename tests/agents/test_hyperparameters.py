@@ -5,6 +5,7 @@ block of conf/train.yaml is written from them and the config check derived."""
 
 from __future__ import annotations
 
+import importlib
 import inspect
 import shutil
 import subprocess
@@ -28,6 +29,23 @@ from walkers.training.validate import validate
 
 DECLARED = [(name, f.name) for name, schema in SCHEMAS.items() for f in fields(schema)]
 SETTINGS = {f.name: f for f in fields(RunSettings)}
+
+
+@pytest.mark.parametrize(
+    ("schema", "key", "built"),
+    [
+        ("ddpg", "critic_architecture", "walkers.agents.common.networks.CRITIC_ARCHITECTURES"),
+        ("ddpg", "noise_type", "walkers.agents.common.noise.NOISE_TYPES"),
+        ("ppo", "activation", "walkers.agents.common.policies.ACTIVATIONS"),
+        ("dt", "precision", "walkers.agents.common.transformer.PRECISIONS"),
+    ],
+)
+def test_a_menu_of_names_offers_what_the_code_builds(schema, key, built):
+    """The declarations name the choices (so that checking a config imports no torch); the
+    torch code maps the same names to what it builds, in the same order."""
+    module, name = built.rsplit(".", 1)
+    offered = next(f for f in fields(SCHEMAS[schema]) if f.name == key).metadata["allowed"]
+    assert offered.text == " or ".join(getattr(importlib.import_module(module), name))
 
 
 @pytest.mark.parametrize(

@@ -321,14 +321,18 @@ def test_a_run_from_before_a_hyperparameter_was_declared_joins_the_arm_of_its_de
     assert len(splits) == 1
 
 
-def test_rendering_a_report_imports_no_mlflow():
+def test_rendering_a_report_imports_no_mlflow_and_a_comparison_no_torch():
     """The report only renders a comparison: its data model and the names of axes come from
-    modules that import no MLflow, and the tracking face imports its parts on first use."""
+    modules that import no MLflow, and the tracking face imports its parts on first use. Comparing
+    runs, and refusing a typo on any command line, import no torch (seconds of a user's wait):
+    only a reference arm's fingerprint needs it."""
     code = (
         "import sys, walkers.analysis.report, walkers.tracking.names; "
         "assert 'mlflow' not in sys.modules, 'mlflow imported'; "
         "from walkers.tracking import KILLED, Tracker; "
-        "assert 'mlflow' in sys.modules"
+        "assert 'mlflow' in sys.modules; "
+        "import walkers.compare, walkers.cli; "
+        "assert 'torch' not in sys.modules, 'torch imported'"
     )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert done.returncode == 0, done.stderr[-2000:]

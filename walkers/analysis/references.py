@@ -23,7 +23,6 @@ from pathlib import Path
 import yaml
 
 from walkers import tracking
-from walkers.agents.fingerprint import differs, update_fingerprint
 from walkers.analysis.arms import is_not_the_experiment, run_params
 from walkers.errors import ConfigError
 from walkers.tracking.bundles import BundleRuns
@@ -122,6 +121,10 @@ def _check_code(reference: BundleRuns, run, where: str) -> None:
             "a twin or an offline run): its code cannot be checked; export it from the commit "
             f"that trained it ({run.data.tags.get('git_commit', 'unknown')})"
         )
+    # here, not at the top: a fingerprint is computed by today's torch code, and a report
+    # without references (most of them) is made without importing torch
+    from walkers.agents.fingerprint import differs, update_fingerprint
+
     algo = (yaml.safe_load(record.get("config") or "") or {}).get("algo") or {}
     difference = differs(recorded, update_fingerprint(algo))
     if difference:

@@ -1,6 +1,10 @@
 """What a training run records about itself: its tags (algorithm, env, seed, implementation,
 commit, worker, a sweep job's place), its name, and its config as shareable params (no
-secrets)."""
+secrets).
+
+Readers of runs (``walkers.compare``, a study's checks) import its names too: what needs torch
+or gymnasium (the code digest, an offline run's references) is imported where a run's tags are
+made, so that a report or a refusal does not wait seconds for them."""
 
 from __future__ import annotations
 
@@ -14,9 +18,7 @@ from importlib import metadata
 from omegaconf import DictConfig, OmegaConf
 
 from walkers import PROJECT_ROOT, tracking
-from walkers.agents.fingerprint import CODE_DIGEST_TAG, code_digest
 from walkers.secrets import redacted
-from walkers.training.evaluation import offline_references
 
 #: Tag: the versions of the packages that compute a run (:data:`PACKAGES`).
 PACKAGES_TAG = "walkers.packages"
@@ -36,6 +38,8 @@ DIVERGED_TAG = "walkers.diverged_at_step"
 def new_run_tags(cfg: DictConfig, x_axis: str, data=None) -> dict[str, str]:
     """The tags a new run starts with; ``x_axis``: what its steps count; ``data``: an offline
     run's dataset."""
+    from walkers.agents.fingerprint import CODE_DIGEST_TAG, code_digest  # torch: module doc
+
     commit = git_commit()
     tags = {
         CODE_DIGEST_TAG: code_digest(),
@@ -61,6 +65,8 @@ def resumed_code_tags(tags_before: Mapping[str, str]) -> dict[str, str]:
     before, else every digest that trained it, joined by ``+`` (``a+b``). Such a run's update can
     no longer be fingerprinted by one code, so it cannot stand as a reference arm: an export
     records no fingerprint for it (:func:`walkers.agents.fingerprint.of_run`)."""
+    from walkers.agents.fingerprint import CODE_DIGEST_TAG, code_digest  # torch: module doc
+
     before, now = tags_before.get(CODE_DIGEST_TAG), code_digest()
     if before is None or now in before.split("+"):
         return {}
@@ -172,6 +178,8 @@ def other_data(recorded: dict[str, str], now: dict[str, str]) -> str | None:
 def dataset_params(data, env_cfg) -> dict[str, str]:
     """An offline run's dataset statistics, as params, with the references its normalized scores
     are measured between and the behaviour policy's own score on them."""
+    from walkers.training.evaluation import offline_references  # see the module's doc
+
     returns = data.returns
     references = offline_references(env_cfg, data)
     behaviour = data.behaviour_return

@@ -11,10 +11,6 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass
 
-from walkers.agents.common.networks import CRITIC_ARCHITECTURES
-from walkers.agents.common.noise import NOISE_TYPES
-from walkers.agents.common.policies import ACTIVATIONS
-from walkers.agents.common.transformer import PRECISIONS
 from walkers.agents.declarations.hyperparameters import (
     BOOL,
     DISCOUNT,
@@ -34,6 +30,15 @@ from walkers.agents.declarations.hyperparameters import (
     one_of,
     or_null,
 )
+
+#: What the menus of names offer, by name: what each name builds lives beside the torch code
+#: (``CRITIC_ARCHITECTURES``, ``NOISE_TYPES``, ``ACTIVATIONS``, ``PRECISIONS`` in
+#: :mod:`walkers.agents.common`; tests/agents/test_hyperparameters.py holds them equal), so that
+#: checking a config, comparing runs or planning a study imports no torch.
+CRITIC_ARCHITECTURE_NAMES = ("mlp", "layernorm_branch")
+NOISE_TYPE_NAMES = ("gaussian", "ou")
+ACTIVATION_NAMES = ("tanh", "relu")
+PRECISION_NAMES = ("fp32", "bf16")
 
 COMPILE_DOC = (
     "torch.compile the loss computations (on CUDA with CUDA graphs, for\n"
@@ -139,7 +144,7 @@ class DDPGHyperparameters(OffPolicy):
     )
     critic_architecture: str = hp(
         "mlp",
-        one_of(*CRITIC_ARCHITECTURES),
+        one_of(*CRITIC_ARCHITECTURE_NAMES),
         "mlp: TD3's critic (the tutorial's \"same structure\");\n"
         "layernorm_branch: the tutorial's critic (state layers Linear+LayerNorm+ReLU,\n"
         "action merged at the last hidden layer)",
@@ -152,7 +157,7 @@ class DDPGHyperparameters(OffPolicy):
     )
     noise_type: str = hp(
         "gaussian",
-        one_of(*NOISE_TYPES),
+        one_of(*NOISE_TYPE_NAMES),
         "gaussian | ou (Ornstein-Uhlenbeck, theta 0.15, reset every episode)",
     )
 
@@ -322,7 +327,7 @@ class PPOHyperparameters(Hyperparameters):
     hidden_sizes: list[int] = hp(
         [64, 64], LAYERS, "hidden layers of the policy mean and of the (separate) value network"
     )
-    activation: str = hp("tanh", one_of(*ACTIVATIONS), "tanh (the reference) | relu")
+    activation: str = hp("tanh", one_of(*ACTIVATION_NAMES), "tanh (the reference) | relu")
     log_std_init: float = hp(
         0.0,
         NUMBER,
@@ -413,7 +418,7 @@ class DecisionTransformerHyperparameters(Hyperparameters):
     grad_clip: float = hp(0.25, POSITIVE, "gradient-norm clip")
     precision: str = hp(
         "fp32",
-        one_of(*PRECISIONS),
+        one_of(*PRECISION_NAMES),
         "fp32 (the reference) | bf16: the transformer under bfloat16 autocast, weights and "
         "optimizer in fp32 (1.35-1.57x faster a step on a CPU with AVX-512 BF16; other rounding)",
     )

@@ -6,8 +6,9 @@ import json
 
 import pytest
 
-from tests.conftest import TINY, all_runs, compose_cfg, new_store, one_line_error, run_cli
+from tests.conftest import TINY, all_runs, compose_cfg, new_store, run_cli
 from walkers.analysis.comparison import compare
+from walkers.errors import ConfigError
 from walkers.train import train
 
 SIZES = ["[16, 16]", "[32, 32]"]  # as the runs' params spell them
@@ -112,12 +113,13 @@ def test_group_by_study_as_a_user_runs_it(sizes_store, tmp_path):
 
 
 def test_a_group_by_key_no_run_has_is_a_one_line_error(sizes_store, tmp_path):
+    """In-process: test_compare.py's command-line refusal proves the line and the exit."""
     out = tmp_path / "report"
-    result = run_cli(
-        compare_overrides(sizes_store, out, "group_by=algo.hiden_sizes"),
-        cwd=sizes_store["path"],
-        module="walkers.compare",
+    cfg = compose_cfg(
+        compare_overrides(sizes_store, out, "group_by=algo.hiden_sizes"), config_name="compare"
     )
-    error = one_line_error(result)
+    with pytest.raises(ConfigError) as refused:
+        compare(cfg)
+    error = str(refused.value)
     assert "group_by='algo.hiden_sizes'" in error and "did you mean algo.hidden_sizes?" in error
-    assert not out.exists()
+    assert "\n" not in error and not out.exists()

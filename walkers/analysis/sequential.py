@@ -31,6 +31,7 @@ with four).
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -160,7 +161,7 @@ def smallest_p(n: int, *, two_sided: bool) -> float:
     return min(1.0, (2 if two_sided else 1) / math.comb(2 * n, n))
 
 
-@dataclass
+@dataclass(frozen=True)
 class Answer:
     """A question's answer: the decision, the look it came at and what it saw."""
 
@@ -190,7 +191,16 @@ def _mann_whitney(a: np.ndarray, b: np.ndarray, alternative: str) -> float:
 def decide_look(a: Sequence[float], b: Sequence[float], design: Design, k: int) -> Answer:
     """The answer at look ``k`` from the first ``looks[k]`` seeds of each arm."""
     n = design.looks[k]
-    a, b = np.asarray(a[:n], float), np.asarray(b[:n], float)
+    return _look(tuple(map(float, a[:n])), tuple(map(float, b[:n])), design, k)
+
+
+@functools.lru_cache(maxsize=4096)
+def _look(a_seeds: tuple[float, ...], b_seeds: tuple[float, ...], design: Design, k: int):
+    """:func:`decide_look` of seeds as tuples, remembered: a study replays every earlier look
+    each round (:func:`answer`), and its simulations (:mod:`walkers.ab.simulation`) do so
+    thousands of times; a look's seeds never change once it is reached."""
+    n = len(a_seeds)
+    a, b = np.asarray(a_seeds), np.asarray(b_seeds)
     level = design.level(k)
     p = _two_sided_p(a, b)
     difference = float(a.mean() - b.mean())
@@ -202,11 +212,9 @@ def decide_look(a: Sequence[float], b: Sequence[float], design: Design, k: int) 
         below = _mann_whitney(a - design.delta, b, "less")
         if max(above, below) <= level:
             return Answer(EQUAL, k, n, p, difference)
-    last = k == len(design.looks) - 1
-    answer = Answer(NOT_SETTLED if last else CONTINUE, k, n, p, difference)
-    if last:
-        answer.power = reached_power(a, b, design)
-    return answer
+    if k < len(design.looks) - 1:
+        return Answer(CONTINUE, k, n, p, difference)
+    return Answer(NOT_SETTLED, k, n, p, difference, reached_power(a, b, design))
 
 
 def reached_power(a: np.ndarray, b: np.ndarray, design: Design) -> float:

@@ -9,6 +9,7 @@ import pytest
 from PIL import Image, ImageSequence
 
 from tests.conftest import TINY, all_runs, compose_cfg, new_store, one_line_error, run_cli
+from walkers.errors import ConfigError
 from walkers.seeding import eval_start_seeds, held_out_start_seeds
 from walkers.train import train
 from walkers.training.checkpoint_evaluation import evaluate
@@ -107,12 +108,10 @@ def test_training_logs_gifs_every_video_every_steps(trained):
     assert gifs == ["videos/step_00000300.gif", "videos/step_00000600.gif"]
 
 
-def test_evaluate_cli_bad_checkpoint_is_one_line(trained):
+def test_evaluate_bad_checkpoint_is_one_line(trained):
+    """In-process: the start_states refusal above proves the command line's part."""
     store, run = trained
-    result = run_cli(
-        [f"run_id={run.info.run_id}", "checkpoint=newest", *store["overrides"]],
-        cwd=store["path"],
-        module="walkers.evaluate",
-    )
-    error = one_line_error(result)
-    assert "checkpoint='newest'" in error and "best, last" in error
+    with pytest.raises(ConfigError) as refused:
+        evaluate(evaluate_cfg(store, run, "checkpoint=newest"))
+    error = str(refused.value)
+    assert "checkpoint='newest'" in error and "best, last" in error and "\n" not in error

@@ -85,8 +85,11 @@ def refusal_in_process(store, capsys, *overrides: str) -> str:
             config=config, hydra_context=context, task_function=None
         )
         capsys.readouterr()
-        with pytest.raises(SystemExit) as ended:
-            sweeper.sweep(arguments=list(config.hydra.overrides.task))
+        try:
+            with pytest.raises(SystemExit) as ended:
+                sweeper.sweep(arguments=list(config.hydra.overrides.task))
+        finally:
+            HydraConfig.instance().cfg = None  # as Hydra leaves no run behind: later tests see none
     lines = capsys.readouterr().err.strip().splitlines()
     assert ended.value.code == 2 and len(lines) == 1, lines
     return lines[0]

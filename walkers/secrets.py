@@ -32,7 +32,8 @@ def has_password(url: str | None) -> bool:
 
 
 def redacted_uri(uri: str) -> str:
-    """``uri`` with the password of its user part, if any, shown as ``***``."""
+    """``uri`` with the password of its user part, if any, shown as ``***``: any URL, a tracking
+    server's included (:func:`redacted` reads the database URLs SQLAlchemy knows)."""
     parts = urlsplit(uri)
     if parts.password is None:
         return uri

@@ -195,7 +195,7 @@ def decide_look(a: Sequence[float], b: Sequence[float], design: Design, k: int) 
 
 
 @functools.lru_cache(maxsize=4096)
-def _look(a_seeds: tuple[float, ...], b_seeds: tuple[float, ...], design: Design, k: int):
+def _look(a_seeds: tuple[float, ...], b_seeds: tuple[float, ...], design: Design, k: int) -> Answer:
     """:func:`decide_look` of seeds as tuples, remembered: a study replays every earlier look
     each round (:func:`answer`), and its simulations (:mod:`walkers.ab.simulation`) do so
     thousands of times; a look's seeds never change once it is reached."""

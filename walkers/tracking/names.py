@@ -31,8 +31,9 @@ JOB_KEY_TAG = "walkers.job_key"
 MULTIRUN_JOB_TAG = "walkers.multirun_job"
 #: Tag: the last step whose metrics reached MLflow (a resumed run logs only steps after it).
 LOGGED_THROUGH_TAG = "walkers.logged_through"
-#: Tags of an A/B study's own run: ``walkers.kind=ab`` and ``walkers.ab=<study name>``; its jobs'
-#: runs nest under it (``mlflow.parentRunId``).
+#: Tags of an A/B study's own run: ``walkers.kind=ab`` and ``walkers.ab=<study name>``; the runs
+#: it trains nest under it (``mlflow.parentRunId``), and every run it counts carries its job key
+#: (:func:`study_job_key`), wherever it was trained.
 STUDY_KIND, STUDY_TAG = "ab", "walkers.ab"
 
 

@@ -161,8 +161,8 @@ class ValueClip(nn.Module):
 class PrioritizedReplay(ReplayBuffer):
     """LAP's buffer: each member's transitions with a priority (new ones get the member's
     largest so far), sampled in proportion to it in one op for all members (a cumulative sum
-    and a search per member, over the whole capacity, so a captured graph samples a growing
-    buffer; unfilled rows have priority 0)."""
+    and a search per member: on a GPU over the whole capacity, so a captured graph samples a
+    growing buffer, unfilled rows having priority 0; on a CPU over the filled rows)."""
 
     def __init__(self, capacity, obs_dim, act_dim, device="cpu", seeds=(0,)):
         super().__init__(capacity, obs_dim, act_dim, device, seeds)
@@ -174,8 +174,11 @@ class PrioritizedReplay(ReplayBuffer):
         super().add(obs, action, reward, next_obs, terminated, episode_end)
 
     def draw_rows(self, batch_size: int) -> torch.Tensor:
-        """``(K, batch_size)`` rows, each member's in proportion to its priorities."""
-        cumulative = self.priority.cumsum(dim=1)
+        """``(K, batch_size)`` rows, each member's in proportion to its priorities. On a CPU
+        (never captured) only the filled rows are summed: the same rows, drawn in a tenth of
+        the time at 100k of 1M."""
+        filled = self.size if self.device.type == "cpu" else self.capacity
+        cumulative = self.priority[:, :filled].cumsum(dim=1)
         uniform = self.sampler.uniform(batch_size)
         return torch.searchsorted(cumulative, uniform * cumulative[:, -1:])
 

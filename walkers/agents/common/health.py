@@ -102,7 +102,9 @@ def skip_nonfinite(
     else:
         bad_grads = _bad_member_gradients(grads, members)
     bad = _skip(optimizer, member_loss, bad_grads, also_skip)
-    if members > 1:  # one agent: found_inf skips the step already
+    # one agent: found_inf skips the step already; on a CPU, reading ``bad`` costs no sync, and
+    # a population whose members are all good (nearly every update) has nothing to zero
+    if members > 1 and (grads[0].device.type != "cpu" or bool(bad.any())):
         skip = (bad > 0).repeat_interleave(copies)
         for grad in grads:  # members lead every parameter's dimensions
             grad.masked_fill_(skip.view(-1, *(1,) * (grad.dim() - 1)), 0.0)
@@ -150,8 +152,9 @@ def _skip(
 
 def _bad_member_gradients(grads: list[torch.Tensor], members: int) -> torch.Tensor:
     """Per member ``(members,)``: 1.0 where any of its gradients is NaN/inf. Every parameter's
-    leading dimension holds the members (each member's copies, e.g. its critics, together)."""
-    finite = torch.ones(members, dtype=torch.bool, device=grads[0].device)
-    for grad in grads:
-        finite &= torch.isfinite(grad).reshape(members, -1).all(dim=1)
-    return (~finite).to(torch.float32)
+    leading dimension holds the members (each member's copies, e.g. its critics, together).
+
+    One pass over the gradients: a member's sum is NaN/inf where any of its entries is (inf
+    plus -inf is NaN), and finite gradients whose sum overflows float32 are no step to take."""
+    sums = torch.stack([grad.reshape(members, -1).sum(dim=1) for grad in grads])
+    return _not_finite(sums.sum(dim=0))

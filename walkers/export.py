@@ -1,6 +1,6 @@
 """``python -m walkers.export``: a study's, an experiment's or a selection's runs as one bundle.
 
-    python -m walkers.export tracking.experiment=ab_tiny study=tiny out=results/tiny
+    python -m walkers.export tracking.experiment=ab_tiny study=tiny out=my_bundle
     python -m walkers.export tracking.experiment=walkers 'where={algo: td3}' checkpoints=true out=b
     python -m walkers.export ... out=results/tiny/bundle replace=true   # the same bundle, anew
 
@@ -15,7 +15,7 @@ import hydra
 from omegaconf import DictConfig, OmegaConf
 
 from walkers import CONF_DIR, tracking
-from walkers.agents import fingerprint
+from walkers.analysis.references import recorded_fingerprint
 from walkers.cli import exit_on_bad_overrides, or_exit
 from walkers.errors import ConfigError
 from walkers.tracking import bundles
@@ -54,7 +54,7 @@ def export(cfg: DictConfig) -> bundles.Exported:
         Path(cfg.out),
         selection,
         checkpoints=checkpoints,
-        fingerprint=fingerprint.of_run,
+        fingerprint=recorded_fingerprint,
         replace=replace,
     )
 

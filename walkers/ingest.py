@@ -1,10 +1,11 @@
 """``python -m walkers.ingest``: a bundle's runs into a store (``import`` is Python's keyword).
 
-    python -m walkers.ingest bundle=results/tiny
+    python -m walkers.ingest bundle=results/tiny/bundle
     python -m walkers.ingest bundle=gpu_box_study tracking.uri=postgresql+psycopg://...
 
-Checked whole before anything is written; the same bundle twice adds nothing
-(:mod:`walkers.tracking.bundles`).
+Checked whole before anything is written; the same bundle twice adds nothing, and a later bundle
+of the same runs replaces the copies of those that went on since (KILLED then, FINISHED now) but
+were not trained on here (:mod:`walkers.tracking.bundles`).
 """
 
 from __future__ import annotations
@@ -27,9 +28,10 @@ def ingest(cfg: DictConfig) -> bundles.Imported:
 @hydra.main(config_path=str(CONF_DIR), config_name="ingest")
 def main(cfg: DictConfig) -> None:
     done = or_exit(ingest, cfg)
+    replacing = f", {done.updated} of them later versions of earlier copies" * bool(done.updated)
     print(
-        f"imported {len(done.added)} runs from {cfg.bundle} ({done.present} already there); "
-        f"open them: `make ui`, then {tracking.ui_url(done.experiment_id)}"
+        f"imported {len(done.added)} runs from {cfg.bundle}{replacing} ({done.present} already "
+        f"there); open them: `make ui`, then {tracking.ui_url(done.experiment_id)}"
     )
 
 

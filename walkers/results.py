@@ -19,10 +19,12 @@ from __future__ import annotations
 import re
 import shutil
 import sys
+import tempfile
 from pathlib import Path
 
 import yaml
 from hydra import compose, initialize_config_dir
+from omegaconf import open_dict
 
 from walkers import CONF_DIR, PROJECT_ROOT
 from walkers.analysis.comparison import compare
@@ -49,18 +51,24 @@ def write_page(name: str, out: Path | None = None) -> Path:
         *page["compare"],
         f"bundle={folder / 'bundle'}",
         f"tracking.experiment={experiment}",
-        f"out={out / '${env.id}'}",
         f"source='results/{name}/bundle (experiment {experiment})'",
         "log_report=false",
     ]
     with initialize_config_dir(config_dir=str(CONF_DIR)):
         cfg = compose("compare", overrides=overrides)
-    if out.exists():
-        shutil.rmtree(out)
-    if cfg.envs:
-        compare_suite(cfg)
-    else:
-        compare(cfg)
+    # written beside the committed report and swapped in once whole: a comparison refused (a
+    # reference no longer like for like with today's code) leaves the report as it was
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(dir=out.parent, prefix=f".{out.name}.") as tmp:
+        with open_dict(cfg):
+            cfg.out = str(Path(tmp) / "new" / "${env.id}")
+        if cfg.envs:
+            compare_suite(cfg)
+        else:
+            compare(cfg)
+        if out.exists():
+            out.rename(Path(tmp) / "earlier")  # removed with the staging folder
+        (Path(tmp) / "new").rename(out)
     return out
 
 
@@ -137,13 +145,19 @@ def main(argv: list[str]) -> int:
             print(path)
         return 0
     names = argv or pages()
-    try:
-        for name in names:
-            print(f"results/{name}: {write_page(name)}")
-    except ConfigError as e:
-        print(f"error: {e}", file=sys.stderr)
+    unknown = [name for name in names if name not in pages()]
+    if unknown:  # before anything is written
+        print(f"error: results={unknown[0]!r} is not allowed: one of {', '.join(pages())}",
+              file=sys.stderr)  # fmt: skip
         return 2
-    return 0
+    failed = 0
+    for name in names:  # one page refused: the others are still written
+        try:
+            print(f"results/{name}: {write_page(name)}")
+        except ConfigError as e:
+            print(f"error: results/{name}: {e}", file=sys.stderr)
+            failed += 1
+    return 2 if failed else 0
 
 
 if __name__ == "__main__":

@@ -168,6 +168,20 @@ def test_configurations_of_one_algorithm_are_split_and_listed_never_pooled():
     assert "differ in algo.hidden_sizes" in note and "[256, 256]): 2 runs" in note
 
 
+def test_a_seed_trained_twice_counts_once_and_the_report_says_which_run():
+    """The same command run twice without a job key trains seed 0 twice: one sample, not two
+    (two would narrow every interval); the latest run counts."""
+    first, again = td3("first", seed="0"), td3("again", seed="0")
+    first.info._start_time, again.info._start_time = 10, 20
+    built, left_out, _ = arms.build_arms([again, first, td3("one", seed="1")])
+    assert [[r.info.run_id for r in a.runs] for a in built] == [["again", "one"]]
+    (note,) = left_out
+    assert (
+        note == "td3: seed 0 has 2 finished runs; the latest, again, counts (one sample per "
+        "seed), not first"
+    )
+
+
 def test_shortened_names_that_collide_are_spelled_out():
     base = {f"algo.k{i}": "0" for i in range(4)}
     a = td3("a", **base)

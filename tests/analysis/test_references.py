@@ -11,7 +11,7 @@ import shutil
 import pytest
 import yaml
 
-from tests.conftest import compose_cfg, new_store, one_line_error, run_cli
+from tests.conftest import all_runs, compose_cfg, new_store, one_line_error, run_cli
 from walkers.analysis.comparison import build_comparison
 from walkers.analysis.comparison import compare as compare_in_process
 from walkers.errors import ConfigError
@@ -145,6 +145,10 @@ def _set(section: str, key: str, value: str):
         (_set("params", "env.max_episode_steps", "100"), "has env.max_episode_steps=100, the"),
         (_set("params", "total_steps", "1200"), "has total_steps=1200, this comparison 600"),
         (_set("tags", "impl", "sb3"), "carries no update fingerprint"),
+        (  # resumed under other code, in a bundle written before exports dropped its fingerprint
+            _set("tags", "walkers.code_digest", "0lder+newer"),
+            "was trained by 2 codes in turn (resumed under another: code digests 0lder then newer)",
+        ),
     ],
 )
 def test_a_reference_that_is_not_like_for_like_is_refused(stores, tmp_path, change, expected):
@@ -166,3 +170,56 @@ def test_a_reference_that_is_not_like_for_like_is_refused(stores, tmp_path, chan
         build_comparison(cfg)
     assert expected in str(refused.value)
     assert str(refused.value).startswith("reference 'td3_bundle' is not like for like")
+
+
+def test_references_on_an_env_the_store_has_no_runs_of_are_held_to_each_other(stores, tmp_path):
+    """With nothing of the store's on the env to stand beside, two references must still share
+    the evaluation protocol and the budget: the first's settings hold the second."""
+    _, _, bundle = stores
+    empty = new_store(tmp_path / "empty")
+    empty["client"].create_experiment("ref")  # its runs, if any, are of other envs
+
+    def more_episodes(record):
+        record["params"]["eval_episodes"] = "10"
+
+    other = tmp_path / "other_td3"
+    shutil.copytree(_edited(bundle, tmp_path, more_episodes), other)
+    cfg = compose_cfg(
+        [f"reference=[{bundle},{other}]", "env=pendulum", "algos=[td3]",
+         "tracking.experiment=ref", f"tracking.uri={empty['uri']}"],
+        config_name="compare",
+    )  # fmt: skip
+    with pytest.raises(ConfigError) as refused:
+        build_comparison(cfg)
+    assert str(refused.value).startswith("reference 'other_td3' is not like for like: run ")
+    assert "has eval_episodes=10, the runs it stands beside 2" in str(refused.value)
+
+
+def test_a_run_continued_to_a_longer_budget_is_compared_at_the_budget_it_trained_for(
+    stores, tmp_path
+):
+    """``resume=<id> total_steps=N`` cannot rewrite the run's ``total_steps`` param: the run says
+    N in a tag, and a comparison, a budget check and a reference read N, not the param."""
+    _, ours, _ = stores
+    longer = new_store(tmp_path / "longer")
+    train_run(compose_cfg(["algo=td3", "seed=0", *TINY, *longer["overrides"]]))
+    (run,) = all_runs(longer["client"])
+    resumed = run_cli([f"resume={run.info.run_id}", "total_steps=800", *longer["overrides"]],
+                      cwd=longer["path"])  # fmt: skip
+    assert resumed.returncode == 0, resumed.stderr[-2000:]
+    run = longer["client"].get_run(run.info.run_id)
+    assert run.info.status == "FINISHED"
+    assert run.data.params["total_steps"] == "600" and run.data.tags["walkers.total_steps"] == "800"
+    at = compose_cfg(["env=pendulum", "tracking.experiment=ref", f"tracking.uri={longer['uri']}"],
+                     config_name="compare")  # fmt: skip
+    comparison, _ = build_comparison(at)
+    assert comparison.budgets == {"env_steps": 800}
+    # exported, it is refused beside runs of 600 steps
+    bundle = tmp_path / "longer_td3"
+    export(compose_cfg(["tracking.experiment=ref", f"out={bundle}",
+                        f"tracking.uri={longer['uri']}"], config_name="export"))  # fmt: skip
+    cfg = compose_cfg([f"reference=[{bundle}]", "env=pendulum", "tracking.experiment=ref",
+                       f"tracking.uri={ours['uri']}"], config_name="compare")  # fmt: skip
+    with pytest.raises(ConfigError) as refused:
+        build_comparison(cfg)
+    assert "has total_steps=800, this comparison 600" in str(refused.value)

@@ -37,6 +37,39 @@ def test_an_unknown_page_is_refused_in_one_line():
     assert str(refused.value).startswith(f"results='nope' is not allowed: one of {pages()[0]}")
 
 
+def test_a_page_whose_report_is_refused_keeps_it_and_the_other_pages_are_written(
+    tmp_path, monkeypatch, capsys
+):
+    """``make results`` after a change that makes one page's comparison refuse (its reference
+    no longer like for like, say): that page's committed report stays as it was, the others are
+    written, and the command fails naming the page."""
+    import walkers.results as results
+
+    for name in ("ppo_hopper", "ppo_half_cheetah"):
+        shutil.copytree(RESULTS_DIR / name, tmp_path / name)
+    page = tmp_path / "ppo_hopper" / "page.yaml"
+    page.write_text(
+        page.read_text().replace('compare: ["env=hopper"]', 'compare: ["env=walker2d"]')
+    )
+    report = tmp_path / "ppo_hopper" / "report"
+    before = {p: p.read_bytes() for p in report.rglob("*") if p.is_file()}
+    shutil.rmtree(tmp_path / "ppo_half_cheetah" / "report")
+    monkeypatch.setattr(results, "RESULTS_DIR", tmp_path)
+
+    assert results.main([]) == 2
+    error = capsys.readouterr().err
+    assert error.startswith("error: results/ppo_hopper: ") and "Walker2d-v5" in error, error
+    assert {p: p.read_bytes() for p in report.rglob("*") if p.is_file()} == before
+    written = tmp_path / "ppo_half_cheetah" / "report" / "HalfCheetah-v5" / "summary.json"
+    assert written.is_file()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ppo_half_cheetah", "ppo_hopper"]
+    assert sorted(p.name for p in (tmp_path / "ppo_hopper").iterdir()) == [
+        "bundle",
+        "page.yaml",
+        "report",
+    ]  # no staging left
+
+
 def test_the_sites_home_is_the_readme_with_every_link_reaching_a_site_page(tmp_path):
     """``make docs`` writes the site's home from the README (a hand-kept copy drifted): the same
     text, and each of its links a page the site holds, a results report included."""

@@ -16,6 +16,7 @@ from walkers.analysis.comparison import compare
 from walkers.errors import ConfigError
 from walkers.export import export as export_runs
 from walkers.tracking import bundles
+from walkers.tracking.names import LOGGED_THROUGH_TAG
 
 
 def report(store, *args: str) -> str:
@@ -242,6 +243,80 @@ def test_a_run_that_conflicts_with_a_finished_one_is_refused_before_anything_is_
     assert len(bundles.import_bundle(client, bundle, "ab_tiny_copy").added) == 11
 
 
+def _stopped_earlier(bundle, tmp_path):
+    """The bundle as an export made while one job was still training would have been: that run
+    KILLED, logged through an earlier step; returns (the bundle, that run's origin)."""
+    stopped = {}
+
+    def stop_one(document):
+        record = next(r for r in document["runs"] if r["tags"].get("walkers.job_key"))
+        record["status"] = "KILLED"
+        record["tags"][LOGGED_THROUGH_TAG] = "200"
+        stopped["origin"] = record["origin"]
+
+    return _rewritten(bundle, tmp_path, stop_one), stopped["origin"]
+
+
+def _copy_of(store, origin: str):
+    (copy,) = [r for r in all_runs(store["client"]) if r.data.tags[bundles.ORIGIN_TAG] == origin]
+    return copy
+
+
+def test_a_later_bundle_replaces_copies_that_went_on_since_and_refuses_two_continuations(
+    studied, tmp_path
+):
+    """A study exported from a GPU box mid-way, imported, then exported again once done: the
+    second import brings the run that was KILLED as FINISHED (a study command here then has
+    nothing to run), a third adds nothing. A copy trained on here as well is a conflict."""
+    _, bundle, _ = studied
+    earlier, origin = _stopped_earlier(bundle, tmp_path)
+    target = new_store(tmp_path / "home")
+    assert len(bundles.import_bundle(target["client"], earlier).added) == 11
+    assert _copy_of(target, origin).info.status == "KILLED"
+
+    done = ingest(target, bundle)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "imported 1 runs from " in done.stdout
+    assert ", 1 of them later versions of earlier copies (10 already there)" in done.stdout
+    runs = all_runs(target["client"])
+    assert len(runs) == 11 and {r.info.status for r in runs} == {"FINISHED"}
+    now = _copy_of(target, origin)
+    study = next(r for r in runs if r.data.tags.get("walkers.kind") == "ab")
+    assert now.data.tags["mlflow.parentRunId"] == study.info.run_id
+    third = bundles.import_bundle(target["client"], bundle)
+    assert third.added == [] and third.present == 11
+
+    elsewhere = new_store(tmp_path / "elsewhere")
+    bundles.import_bundle(elsewhere["client"], earlier)
+    copy = _copy_of(elsewhere, origin)
+    elsewhere["client"].set_tag(copy.info.run_id, LOGGED_THROUGH_TAG, "300")  # trained on here
+    line = one_line_error(ingest(elsewhere, bundle))
+    assert f"run {origin} went on where it came from (FINISHED, logged through " in line, line
+    assert "was trained on too (logged through 300): two continuations of one run" in line
+    assert elsewhere["client"].get_run(copy.info.run_id).info.status == "KILLED"
+    assert len(all_runs(elsewhere["client"])) == 11
+
+
+def test_a_run_trained_by_two_codes_travels_without_a_fingerprint(studied, tmp_path):
+    """An imported run carries the fingerprint its bundle recorded; continued here by other code
+    (two code digests), it no longer may: its export records none, whatever the tag says."""
+    from walkers.agents.fingerprint import CODE_DIGEST_TAG
+
+    _, bundle, _ = studied
+    here = new_store(tmp_path)
+    bundles.import_bundle(here["client"], bundle)
+    jobs = [r for r in all_runs(here["client"]) if r.data.tags.get("walkers.job_key")]
+    assert all(bundles.FINGERPRINT_TAG in r.data.tags for r in jobs)
+    resumed = jobs[0]
+    digest = resumed.data.tags[CODE_DIGEST_TAG]
+    here["client"].set_tag(resumed.info.run_id, CODE_DIGEST_TAG, f"{digest}+0therc0de")
+    out = tmp_path / "out"
+    exported(here, "study=t", f"out={out}")
+    fingerprints = {r["origin"]: r["fingerprint"] for r in bundles.read_bundle(out)["runs"]}
+    assert fingerprints.pop(resumed.data.tags[bundles.ORIGIN_TAG]) is None
+    assert len([f for f in fingerprints.values() if f]) == len(jobs) - 1
+
+
 def test_a_bad_export_is_refused_in_one_line_and_writes_nothing(studied):
     source, _, _ = studied
     before = sorted(p.name for p in source["path"].iterdir())
@@ -338,6 +413,20 @@ def test_a_study_with_a_reference_arm_trains_only_its_other_arms(studied, tmp_pa
     assert all_runs(target["client"]) == []
 
     five = "hydra.sweeper.seeds={min:5,max:5,per_round:1}"
+
+    def seed_held_twice(document):  # two studies' arms 'long' in one bundle, say
+        record = next(r for r in document["runs"] if r["tags"].get("walkers.job_key", "")
+                      .startswith("ab/t/long/pendulum/1"))  # fmt: skip
+        record["tags"]["seed"] = "0"
+
+    twice = _rewritten(bundle, tmp_path, seed_held_twice)
+    line = one_line_error(run_cli(study(target, *arms(
+        "{short:'algo=reinforce env.max_episode_steps=100',"
+        f"long:{{reference:'{twice}',arm:long}}}}"
+    ), five), cwd=target["path"]))  # fmt: skip
+    assert f"arm 'long': reference {twice} holds seed 0 twice (runs " in line, line
+    assert all_runs(target["client"]) == []
+
     result = run_cli(study(target, *declared, five), cwd=target["path"])
     assert result.returncode == 0, result.stderr[-3000:]
     trained = [r for r in all_runs(target["client"]) if "walkers.job_key" in r.data.tags]

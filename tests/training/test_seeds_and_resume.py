@@ -229,6 +229,7 @@ def test_a_run_resumed_by_other_update_code_no_longer_stands_as_a_reference(stor
     (run,) = all_runs(store["client"])
     assert run.info.status == "FINISHED"
     assert run.data.tags[CODE_DIGEST_TAG] == f"0lderc0de+{code_digest()}"
+    assert run.data.tags["walkers.total_steps"] == "900"  # its param stays 600
 
     exported = run_cli(
         ["tracking.experiment=walkers", f"out={tmp_path / 'b'}", *store["overrides"][:1]],
@@ -239,5 +240,5 @@ def test_a_run_resumed_by_other_update_code_no_longer_stands_as_a_reference(stor
     (record,) = bundles.read_bundle(tmp_path / "b")["runs"]
     assert record["fingerprint"] is None
     (reference,) = load_references([tmp_path / "b"])
-    with pytest.raises(ConfigError, match="carries no update fingerprint"):
+    with pytest.raises(ConfigError, match="was trained by 2 codes in turn"):
         check_like_for_like(reference, "Pendulum-v1", "final/return_mean", None, None)

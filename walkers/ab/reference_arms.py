@@ -37,7 +37,8 @@ def reference_scores(spec: StudySpec, shared: Mapping[str, dict]) -> Scores:
             params = shared[env]
             budget = int(params["total_steps"])
             checked = check_like_for_like(bundle, params["env.id"], spec.score, params, budget)
-            by_seed = {int(r.data.tags["seed"]): r.data.metrics[spec.score] for r in checked}
+            holder = f"arm {arm.name!r}: reference {arm.reference} holds"
+            by_seed = _scores_by_seed(checked, spec.score, holder)
             lacking = [s for s in range(spec.seeds_max) if s not in by_seed]
             if lacking:
                 raise ConfigError(
@@ -47,3 +48,18 @@ def reference_scores(spec: StudySpec, shared: Mapping[str, dict]) -> Scores:
                 )
             scores[(arm.name, env)] = {s: by_seed[s] for s in range(spec.seeds_max)}
     return scores
+
+
+def _scores_by_seed(runs: list, score: str, holder: str) -> dict[int, float]:
+    """Each seed's score; a seed held twice (two studies' arms of one name in one bundle) is
+    refused, as its two runs are not two samples and either could be the arm's."""
+    by_seed: dict[int, object] = {}
+    for run in runs:
+        seed = int(run.data.tags["seed"])
+        if seed in by_seed:
+            raise ConfigError(
+                f"{holder} seed {seed} twice (runs {by_seed[seed].info.run_id} and "
+                f"{run.info.run_id}): export one study's arm into the bundle it names"
+            )
+        by_seed[seed] = run
+    return {seed: run.data.metrics[score] for seed, run in by_seed.items()}

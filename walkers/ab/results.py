@@ -18,8 +18,8 @@ from omegaconf import DictConfig, open_dict
 
 from walkers import tracking
 from walkers.ab.spec import StudySpec
-from walkers.agents import fingerprint
 from walkers.analysis.comparison import compare
+from walkers.analysis.references import recorded_fingerprint
 from walkers.analysis.suite_report import compare_suite
 from walkers.tracking import bundles
 
@@ -69,7 +69,7 @@ def write_results(
             Path("reports") / experiment / "bundle",
             f"study={spec.name}; statuses FINISHED",
             replace=True,
-            fingerprint=fingerprint.of_run,
+            fingerprint=recorded_fingerprint,
         )
     except Exception as e:  # a store gone away at the end: the answers are on the study's run
         log.warning("study %r: no bundle: %s (python -m walkers.export writes it)", spec.name, e)

@@ -16,7 +16,7 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 from walkers.agents.declarations.schemas import declared_since
-from walkers.tracking import ABSENT, differing_keys
+from walkers.tracking import ABSENT, BUDGET_TAG, differing_keys
 
 #: Config keys (MLflow params; a trailing "." is the whole subtree) that do not make an arm:
 #: a run's results are the same for any value of these, so runs differing only here are seeds of
@@ -63,6 +63,8 @@ def run_params(run) -> dict[str, str]:
     """A run's params as its arm sees them: :data:`LATER_KEYS` and the algorithm's hyperparameters
     declared since the run was made (:func:`declared_later`) filled in where it lacks them."""
     params = LATER_KEYS | dict(run.data.params)
+    if BUDGET_TAG in run.data.tags:  # continued to another budget than it started with
+        params["total_steps"] = run.data.tags[BUDGET_TAG]
     return declared_later(params) | params
 
 
@@ -276,7 +278,31 @@ def build_arms(
         arms += group_arms
         if note:
             splits.append(note)
+    for arm in arms:
+        left_out += _one_run_per_seed(arm)
     return arms, left_out, splits
+
+
+def _one_run_per_seed(arm: Arm) -> list[str]:
+    """Keep the latest run of each seed in ``arm``; notes on the others. Seeds are the arm's
+    independent samples: the same seed trained again (a command run twice without a job key)
+    is not another sample, and counting it would narrow every interval."""
+    by_seed: dict[str, list] = {}
+    for run in arm.runs:
+        by_seed.setdefault(run.data.tags.get("seed", run.info.run_id), []).append(run)
+    notes, kept = [], []
+    for seed, runs in by_seed.items():
+        runs.sort(key=lambda r: r.info.start_time or 0)
+        kept.append(runs[-1])
+        if len(runs) > 1:
+            notes.append(
+                f"{arm.name}: seed {seed} has {len(runs)} finished runs; the latest, "
+                f"{runs[-1].info.run_id}, counts (one sample per seed), not "
+                f"{', '.join(r.info.run_id for r in runs[:-1])}"
+            )
+    kept_ids = {r.info.run_id for r in kept}
+    arm.runs = [r for r in arm.runs if r.info.run_id in kept_ids]
+    return notes
 
 
 def same_series_pairs(arms: Sequence[Arm]) -> list[tuple[str, str]]:

@@ -217,6 +217,8 @@ def build_comparison(cfg: DictConfig, beside: dict | None = None):
     mine, budget = store_settings(runs, cfg.env.id, cfg.total_steps)
     if beside and cfg.env.id in beside:
         mine = beside[cfg.env.id]
+    if mine is None and references:  # nothing of the store's on the env: held to each other
+        mine, budget = store_settings(references[0].runs, cfg.env.id, budget)
     for reference in references:
         check_like_for_like(reference, cfg.env.id, cfg.score, mine, budget)
     source_of = {r.info.run_id: histories for r in runs}

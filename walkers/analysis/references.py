@@ -17,7 +17,9 @@ from references with their provenance.
 
 from __future__ import annotations
 
+import json
 from collections import Counter
+from collections.abc import Mapping
 from pathlib import Path
 
 import yaml
@@ -25,7 +27,7 @@ import yaml
 from walkers import tracking
 from walkers.analysis.arms import is_not_the_experiment, run_params
 from walkers.errors import ConfigError
-from walkers.tracking.bundles import BundleRuns
+from walkers.tracking.bundles import FINGERPRINT_TAG, BundleRuns
 
 #: The param a reference's runs carry: the bundle's name.
 REFERENCE_KEY = "reference"
@@ -62,7 +64,7 @@ def store_settings(store_runs: list, env_id: str, budget: int | None):
     if not ours:
         return None, budget
     if budget is None:
-        budget = int(Counter(r.data.params.get("total_steps") for r in ours).most_common(1)[0][0])
+        budget = int(Counter(map(tracking.total_steps_of, ours)).most_common(1)[0][0])
     every = [run_params(r) for r in ours]
     shared = {k: v for k, v in every[0].items() if all(p.get(k) == v for p in every[1:])}
     return shared, budget
@@ -112,9 +114,34 @@ def _env_key(key: str) -> bool:
     return key.startswith("env.") and not is_not_the_experiment(key)
 
 
+def recorded_fingerprint(tags: Mapping[str, str], config: str | None) -> list[float] | None:
+    """The update fingerprint an export records for a run: the one it carries (an imported
+    run's, recorded by the code that trained it), else today's code's where today's code trained
+    it; none for a run trained by more than one code (resumed under another: no single update
+    made it, whatever it carries)."""
+    from walkers.agents.fingerprint import of_run  # torch: see _check_code
+
+    if len(_code_digests(tags)) > 1:
+        return None
+    known = tags.get(FINGERPRINT_TAG)
+    return json.loads(known) if known else of_run(tags, config)
+
+
+def _code_digests(tags: Mapping[str, str]) -> list[str]:
+    from walkers.agents.fingerprint import CODE_DIGEST_TAG  # torch: see _check_code
+
+    return [d for d in tags.get(CODE_DIGEST_TAG, "").split("+") if d]
+
+
 def _check_code(reference: BundleRuns, run, where: str) -> None:
     record = reference.records[run.info.run_id]
     recorded = record.get("fingerprint")
+    digests = _code_digests(run.data.tags)
+    if len(digests) > 1:  # a bundle written before exports knew: its fingerprint is one code's
+        raise ConfigError(
+            f"{where} was trained by {len(digests)} codes in turn (resumed under another: "
+            f"code digests {' then '.join(digests)}): no one update made it; rerun the arm"
+        )
     if not recorded:
         raise ConfigError(
             f"{where} carries no update fingerprint (exported by other code than trained it, "

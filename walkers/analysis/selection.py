@@ -26,7 +26,7 @@ def x_axis(run) -> str:
 
 
 def _budget(run) -> int | None:
-    value = run.data.params.get("total_steps")
+    value = tracking.total_steps_of(run)
     return int(value) if value is not None and value.isdigit() else None
 
 

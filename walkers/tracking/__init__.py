@@ -28,6 +28,7 @@ _HOMES = {
     "walkers.secrets": ("redacted_uri",),  # imports no MLflow either
     "walkers.tracking.names": (
         "ABSENT",
+        "BUDGET_TAG",
         "END_REASON_TAG",
         "ENV_STEPS",
         "FAILED",
@@ -48,6 +49,7 @@ _HOMES = {
         "study_job_key",
         "study_jobs_prefix",
         "study_of_job_key",
+        "total_steps_of",
     ),
     "walkers.tracking.tracker": (
         "STORE_PATIENCE_S",

@@ -76,6 +76,9 @@ IMPORTED_FROM_TAG = "walkers.imported_from"
 IMPORTING_TAG = "walkers.importing"
 #: Tag: the update's fingerprint a bundle carried for a run (kept when it travels on).
 FINGERPRINT_TAG = "walkers.update_fingerprint"
+#: Tag: the logged-through mark an imported run arrived with: where it still equals the run's
+#: own, nobody trained it on here, and a later bundle's version of it may replace it.
+IMPORTED_THROUGH_TAG = "walkers.imported_through"
 #: The artifacts every run carries in its bundle (small, text); checkpoints only on request.
 CONFIG_ARTIFACT = "config.yaml"
 CHECKPOINTS = "checkpoints"
@@ -93,8 +96,9 @@ class Exported:
 @dataclass
 class Imported:
     experiment_id: str
-    added: list[str]  # run ids created in the target store
+    added: list[str]  # run ids created in the target store (those that replaced copies too)
     present: int  # runs of the bundle already there
+    updated: int = 0  # earlier imported copies replaced by the bundle's later version
 
 
 def _origin(run) -> str:
@@ -173,6 +177,11 @@ def export_runs(
         staging = Path(tmp) / "bundle"
         staging.mkdir()
         records = [_run_record(client, run, staging, checkpoints, fingerprint) for run in runs]
+        origin_of = {run.info.run_id: _origin(run) for run in runs}
+        for record in records:  # a copy's parent is named as its origin, as the run is
+            parent = record["tags"].get("mlflow.parentRunId")
+            if parent in origin_of:
+                record["tags"]["mlflow.parentRunId"] = origin_of[parent]
         for record in records:
             if not record["fingerprint"]:
                 record["fingerprint"] = _same_training(record, recorded.get(record["origin"]))
@@ -195,7 +204,6 @@ def export_runs(
 def _run_record(client, run, staging: Path, checkpoints: bool, fingerprint) -> dict:
     info, data = run.info, run.data
     config = _text_artifact(client, info.run_id, CONFIG_ARTIFACT)
-    known = data.tags.get(FINGERPRINT_TAG)
     record = {
         "origin": _origin(run),
         "run_name": info.run_name,
@@ -208,9 +216,7 @@ def _run_record(client, run, staging: Path, checkpoints: bool, fingerprint) -> d
             {key: client.get_metric_history(info.run_id, key) for key in data.metrics}
         ),
         "config": config,
-        "fingerprint": json.loads(known)
-        if known
-        else fingerprint and fingerprint(data.tags, config),
+        "fingerprint": fingerprint and fingerprint(data.tags, config),
         "artifacts": [],
     }
     if checkpoints:
@@ -334,20 +340,32 @@ def _metrics(record: dict) -> Iterable[Metric]:
 def import_bundle(client, bundle: Path, experiment: str | None = None) -> Imported:
     """Put a bundle's runs into ``experiment`` (default: the one they were exported from) of the
     store ``client`` talks to. Checked whole before anything is written; each run is written
-    whole or deleted (a stop between runs leaves whole runs, which the next import skips)."""
+    whole or deleted (a stop between runs leaves whole runs, which the next import skips).
+
+    A run already there is skipped, unless it is an earlier import of it, not trained on here,
+    that the bundle has a later version of (the run went on where it came from: FINISHED since,
+    or logged further): that copy is replaced. A copy trained on here that the bundle also went
+    on with is a conflict: two continuations of one run."""
     document = read_bundle(bundle)
     experiment = experiment or document["source"]["experiment"]
     there = client.get_experiment_by_name(experiment)
     if there is not None:
         _delete_interrupted_imports(client, there.experiment_id)
     existing = search_runs(client, there.experiment_id) if there is not None else []
-    by_origin = {_origin(run): run.info.run_id for run in existing}
+    by_origin = {_origin(run): run for run in existing}
     finished_by_key = {
         run.data.tags[JOB_KEY_TAG]: run
         for run in existing
         if run.info.status == FINISHED and JOB_KEY_TAG in run.data.tags
     }
-    todo = [record for record in document["runs"] if record["origin"] not in by_origin]
+    todo, replaced = [], {}
+    for record in document["runs"]:
+        copy = by_origin.get(record["origin"])
+        if copy is None:
+            todo.append(record)
+        elif _later_version(record, copy, bundle):
+            todo.append(record)
+            replaced[record["origin"]] = copy.info.run_id
     for record in todo:
         key = record["tags"].get(JOB_KEY_TAG)
         conflict = finished_by_key.get(key) if key else None
@@ -361,12 +379,54 @@ def import_bundle(client, bundle: Path, experiment: str | None = None) -> Import
     # parents first, so that a job's run nests under its study's (or sweep's) imported run
     origins = {record["origin"] for record in todo}
     todo.sort(key=lambda r: r["tags"].get("mlflow.parentRunId") in origins)
+    ids = {origin: run.info.run_id for origin, run in by_origin.items()}
     added = []
     for record in todo:
-        run_id = _import_run(client, experiment_id, record, by_origin, document)
-        by_origin[record["origin"]] = run_id
+        run_id = _import_run(client, experiment_id, record, ids, document,
+                             replacing=replaced.get(record["origin"]))  # fmt: skip
+        ids[record["origin"]] = run_id
         added.append(run_id)
-    return Imported(experiment_id, added, len(document["runs"]) - len(todo))
+        if record["origin"] in replaced:  # its runs already here nest under the new copy
+            for child in existing:
+                if child.data.tags.get("mlflow.parentRunId") == replaced[record["origin"]]:
+                    client.set_tag(child.info.run_id, "mlflow.parentRunId", run_id)
+    present = len(document["runs"]) - len(todo)
+    return Imported(experiment_id, added, present, updated=len(replaced))
+
+
+def _later_version(record: dict, copy, bundle: Path) -> bool:
+    """Whether ``record`` is a later state of ``copy`` (the store's run of the same origin) that
+    should replace it; raises where both went on from the state they shared."""
+    tags = copy.data.tags
+    if ORIGIN_TAG not in tags or copy.info.status == FINISHED:
+        return False  # the run itself (a bundle gone home), or a copy that is done
+    arrived = tags.get(IMPORTED_THROUGH_TAG)
+    mark = record["tags"].get(LOGGED_THROUGH_TAG)
+    went_on = record["status"] == FINISHED or _steps(mark) > _steps(tags.get(LOGGED_THROUGH_TAG))
+    if not went_on:
+        return False  # the same state again, or an older one
+    if arrived is None:  # imported before copies recorded it: whether it was trained on here
+        log.warning(  # cannot be told, so it is kept
+            "run %s (copy of %s) kept: the bundle holds a later version of it, but this copy "
+            "predates the mark that tells whether it was trained on here (delete it in the UI, "
+            "then import again, to take the bundle's)",
+            copy.info.run_id,
+            record["origin"],
+        )
+        return False
+    if copy.info.status == "RUNNING" or arrived != tags.get(LOGGED_THROUGH_TAG, ""):
+        raise ConfigError(
+            f"bundle={str(bundle)!r}: run {record['origin']} went on where it came from "
+            f"({record['status']}, logged through {mark}), and its copy {copy.info.run_id} here "
+            f"was trained on too (logged through {tags.get(LOGGED_THROUGH_TAG)}): two "
+            "continuations of one run; nothing imported (import into another experiment: "
+            "into=NAME)"
+        )
+    return True
+
+
+def _steps(mark: str | None) -> int:
+    return int(mark) if mark else -1
 
 
 def _delete_interrupted_imports(client, experiment_id: str) -> None:
@@ -375,7 +435,12 @@ def _delete_interrupted_imports(client, experiment_id: str) -> None:
         client.delete_run(run.info.run_id)
 
 
-def _import_run(client, experiment_id: str, record: dict, by_origin: dict, document) -> str:
+def _import_run(
+    client, experiment_id: str, record: dict, by_origin: dict, document, replacing: str | None
+) -> str:
+    """One run, written whole under the importing tag; ``replacing``: the earlier copy it
+    replaces, deleted before the run is done (a stop in between: the next import finds the
+    new run unfinished and the old one gone, and imports it again)."""
     tags = dict(record["tags"])
     parent = tags.get("mlflow.parentRunId")
     if parent is not None:
@@ -383,7 +448,11 @@ def _import_run(client, experiment_id: str, record: dict, by_origin: dict, docum
             tags["mlflow.parentRunId"] = by_origin[parent]
         else:  # its parent did not travel: a flat run rather than a dangling link
             del tags["mlflow.parentRunId"]
-    tags |= {ORIGIN_TAG: record["origin"], IMPORTED_FROM_TAG: Path(document["root"]).name}
+    tags |= {
+        ORIGIN_TAG: record["origin"],
+        IMPORTED_FROM_TAG: Path(document["root"]).name,
+        IMPORTED_THROUGH_TAG: record["tags"].get(LOGGED_THROUGH_TAG, ""),
+    }
     if record.get("fingerprint"):
         tags[FINGERPRINT_TAG] = json.dumps(record["fingerprint"])
     run = client.create_run(
@@ -411,11 +480,13 @@ def _import_run(client, experiment_id: str, record: dict, by_origin: dict, docum
         tag_list = [RunTag(k, v) for k, v in tags.items()]
         for chunk in _chunks(tag_list, _BATCH["tags"]):
             client.log_batch(run_id, tags=chunk)
-        client.delete_tag(run_id, IMPORTING_TAG)
+        if replacing is not None:
+            client.delete_run(replacing)
         # a run that was RUNNING where it came from is not running here: KILLED, so that its
         # job continues it from its checkpoint (or starts it anew without one)
         status = record["status"] if record["status"] != "RUNNING" else KILLED
         client.set_terminated(run_id, status, end_time=record["end_time"])
+        client.delete_tag(run_id, IMPORTING_TAG)  # last: until then the next import redoes it
     except BaseException:
         with contextlib.suppress(Exception):
             client.delete_run(run_id)

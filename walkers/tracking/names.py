@@ -31,6 +31,16 @@ JOB_KEY_TAG = "walkers.job_key"
 MULTIRUN_JOB_TAG = "walkers.multirun_job"
 #: Tag: the last step whose metrics reached MLflow (a resumed run logs only steps after it).
 LOGGED_THROUGH_TAG = "walkers.logged_through"
+#: Tag: the budget a run was continued to (``resume=<id> total_steps=N``) where it is not the
+#: ``total_steps`` param it started with (MLflow writes a param once): what it trained for.
+BUDGET_TAG = "walkers.total_steps"
+
+
+def total_steps_of(run) -> str | None:
+    """The budget a run trained for: its ``total_steps`` param, or the one it was continued to."""
+    return run.data.tags.get(BUDGET_TAG) or run.data.params.get("total_steps")
+
+
 #: Tags of an A/B study's own run: ``walkers.kind=ab`` and ``walkers.ab=<study name>``; the runs
 #: it trains nest under it (``mlflow.parentRunId``), and every run it counts carries its job key
 #: (:func:`study_job_key`), wherever it was trained.

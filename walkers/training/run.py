@@ -42,19 +42,25 @@ from walkers.training.provenance import (
 log = logging.getLogger("walkers")
 
 
-def _mixed_code(client, run_id: str) -> dict[str, str]:
-    """The resumed run's code-digest tag where other update code trained it before (said in
-    one line: it can no longer stand as a reference arm)."""
-    tags = resumed_code_tags(client.get_run(run_id).data.tags)
-    for digests in tags.values():
+def _resumed_tags(client, cfg: DictConfig) -> dict[str, str]:
+    """What a resumed run's tags must now say: the budget it goes on to where that is not the
+    one it started with (its param cannot change), and its code digests where other update code
+    trained it before (said in one line: it can no longer stand as a reference arm)."""
+    run = client.get_run(cfg.resume)
+    budget = str(cfg.total_steps)
+    tags = {}
+    if tracking.total_steps_of(run) != budget:
+        tags[tracking.BUDGET_TAG] = budget
+    code = resumed_code_tags(run.data.tags)
+    for digests in code.values():
         log.warning(
             "run %s continues under other update code than trained it so far (walkers.agents "
             "or walkers.data changed: code digests %s): its results stand, but it cannot serve "
             "as a reference arm (no update fingerprint)",
-            run_id,
+            cfg.resume,
             digests.replace("+", " then "),
         )
-    return tags
+    return tags | code
 
 
 @dataclass(frozen=True)
@@ -125,7 +131,7 @@ class TrainingRun:
         """
         tags = (extra_tags or {}) | trial_tags(cfg)
         if cfg.resume:
-            tags |= {WORKER_TAG: worker_name()} | _mixed_code(client, cfg.resume)
+            tags |= {WORKER_TAG: worker_name()} | _resumed_tags(client, cfg)
             tracker = tracking.Tracker.reopen(client, cfg.resume, ".", resumed_training=True)
         else:
             tags = new_run_tags(cfg, axis.name, data) | tags

@@ -34,6 +34,7 @@ from walkers.data.datasets import OfflineData
 from walkers.data.episodes import Episode
 from walkers.data.replay import Batch
 from walkers.errors import ConfigError
+from walkers.tracking import total_steps_of
 from walkers.train import train
 from walkers.training import checkpoints
 from walkers.training.checkpoint_evaluation import evaluate
@@ -376,15 +377,18 @@ def test_offline_algorithms_are_compared_each_at_its_own_budget(chain, tmp_path)
             )
         )
 
+    # TD3+BC's budget is what its run trained for: 300, or 400 once the resume test above has
+    # continued it (its param still says 300)
+    steps = int(total_steps_of(chain["client"].get_run(chain["run"].info.run_id)))
     comparison, out, _ = report()
-    assert comparison.budgets == {"gradient_steps": {"dt": DT_STEPS, "td3bc": STEPS}}
+    assert comparison.budgets == {"gradient_steps": {"dt": DT_STEPS, "td3bc": steps}}
     assert [p.quantity for p in comparison.pairs] == ["score"]
-    assert {r.algo: r.budget for r in comparison.algos} == {"td3bc": STEPS, "dt": DT_STEPS}
-    assert f"dt {DT_STEPS:,} and td3bc {STEPS:,} gradient steps" in (out / "report.md").read_text()
-    comparison, _, _ = report(f"gradient_steps={{td3bc:{STEPS},dt:{DT_STEPS}}}")
-    assert comparison.budgets == {"gradient_steps": {"dt": DT_STEPS, "td3bc": STEPS}}
+    assert {r.algo: r.budget for r in comparison.algos} == {"td3bc": steps, "dt": DT_STEPS}
+    assert f"dt {DT_STEPS:,} and td3bc {steps:,} gradient steps" in (out / "report.md").read_text()
+    comparison, _, _ = report(f"gradient_steps={{td3bc:{steps},dt:{DT_STEPS}}}")
+    assert comparison.budgets == {"gradient_steps": {"dt": DT_STEPS, "td3bc": steps}}
     with pytest.raises(ConfigError, match=r"has no finished Pendulum-v1 runs for dt .*budget"):
-        report(f"gradient_steps={STEPS}")
+        report(f"gradient_steps={steps}")
     with pytest.raises(
         ConfigError,
         match=r"^gradient_steps=\{'dt': -5\} is not allowed: must be null, a positive integer",
@@ -492,8 +496,8 @@ def test_a_dataset_rebuilt_under_its_name_is_not_compared_with_its_first_build(c
         train(compose_cfg([*TD3BC_RUN, f"dataset={REBUILT}", "seed=0", *experiment]))
         (seed0,) = [r for r in all_runs(client) if r.data.tags.get("dataset") == REBUILT]
         second = build(episodes=3)
-        train(compose_cfg([*TD3BC_RUN, f"dataset={REBUILT}", "seed=1", *experiment]))
-        more = [f"total_steps={STEPS + 50}"]
+        more = [f"total_steps={STEPS + 50}"]  # seed 0 goes on to it below: seed 1 trains to it
+        train(compose_cfg([*TD3BC_RUN, f"dataset={REBUILT}", "seed=1", *more, *experiment]))
         resumed = [f"resume={seed0.info.run_id}", *more, *experiment]
         with pytest.raises(ConfigError) as refused:  # seed 0 would go on with other data
             train(compose_cfg(resumed), overrides=more)

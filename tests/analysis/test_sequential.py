@@ -95,3 +95,45 @@ def test_the_looks_that_can_decide_are_those_where_separated_seeds_decide(questi
         assert equal == (k in design.equal_looks()), (k, n)
         exact = sps.mannwhitneyu(high, low, method="exact").pvalue
         assert smallest_p(n, two_sided=True) == pytest.approx(exact)
+
+
+def test_the_better_arm_is_the_one_the_rank_test_found_not_the_one_with_the_higher_mean():
+    """Nine of B's ten seeds below every seed of A, and one far above them all: the rank test
+    rejects because A ranks higher, so the answer is A, whatever B's mean (89 points above)."""
+    from walkers.analysis.sequential import decide_look
+
+    design = Design(alpha=0.05, questions=1, looks=(10,), delta=0.0)
+    a, b = list(range(10, 20)), [*range(9), 1000]
+    result = decide_look(a, b, design, 0)
+    assert result.decision == A_BETTER and result.p_value < 0.002
+    assert result.difference == pytest.approx(-89.1)
+    assert decide_look(b, a, design, 0).decision == "B better"
+
+
+def test_the_power_a_study_reports_when_not_settled_is_at_most_what_its_design_had():
+    """A question not settled at the maximum reports a power for the smallest difference: a lower
+    bound (its last look alone), never more than the design's own, measured by running 300
+    studies of it on arms exactly that difference apart."""
+    from walkers.analysis.sequential import reached_power
+
+    spec = spec_for(arms=2, envs=1, seeds=(5, 15, 2), alpha=0.05, delta=10)
+    rng = np.random.default_rng(5)
+    n = 300
+    outcomes = [simulate(spec, {"arm0": 60, "arm1": 50}, "normal", 10.0, rng) for _ in range(n)]
+    found = sum(o.decisions["arm0 vs arm1 on env0"] == A_BETTER for o in outcomes)
+    design = Design.of(alpha=0.05, questions=1, seeds_min=5, seeds_max=15, per_round=2, delta=10)
+    unit = (lambda x: (x - x.mean()) / x.std(ddof=1))(np.arange(15.0))  # sd exactly 1
+    bound = reached_power(60 + 10 * unit, 50 + 10 * unit, design)
+    # the design's power is above the bound: the bound is below the rate's 99.9% upper limit
+    assert bound <= float(sps.beta.ppf(0.999, found + 1, n - found)), (bound, found / n)
+    assert 0.2 < bound < 0.6
+
+
+def test_tied_seeds_never_decide_below_the_exact_tests_smallest_p():
+    """Four seeds of A tied at a capped return against four distinct seeds of B: the normal
+    approximation's p (0.021) is below what any exact ordering of 4 against 4 can give
+    (2/70 = 0.029); the look does not decide where the design said it could not."""
+    from walkers.analysis.sequential import _two_sided_p, smallest_p
+
+    p = _two_sided_p(np.full(4, 1000.0), np.array([1.0, 2.0, 3.0, 4.0]))
+    assert p == pytest.approx(smallest_p(4, two_sided=True))

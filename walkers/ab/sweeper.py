@@ -352,6 +352,6 @@ def verdicts(final) -> list[str]:
         else:
             text = f"{q.a} vs {q.b} on {where}: not settled at the maximum seeds"
             if r.power == r.power:
-                text += f" (power reached for the smallest difference: {r.power:.2f})"
+                text += f" (power for the smallest difference: at least {r.power:.2f})"
         out.append(f"{text} ({r.seeds} seeds per arm, p = {r.p_value:.4g})")
     return out

@@ -245,9 +245,10 @@ def all_runs(client: MlflowClient) -> list:
     return client.search_runs([e.experiment_id for e in client.search_experiments()])
 
 
-def one_line_error(result: subprocess.CompletedProcess) -> str:
-    """The single ``error: ...`` line of a command that must fail with exit 2 and no traceback."""
-    assert result.returncode == 2, result.stderr[-2000:]
+def one_line_error(result: subprocess.CompletedProcess, code: int = 2) -> str:
+    """The single ``error: ...`` line of a command that must fail with exit ``code`` (2: bad
+    input) and no traceback."""
+    assert result.returncode == code, result.stderr[-2000:]
     lines = [line for line in result.stderr.splitlines() if line.startswith("error:")]
     assert len(lines) == 1 and "Traceback" not in result.stderr, result.stderr[-2000:]
     return lines[0]

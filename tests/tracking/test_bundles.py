@@ -164,6 +164,35 @@ def test_a_study_that_trains_nothing_bundles_the_runs_it_decided_on(studied, tmp
     assert keys == sorted(["the study", *jobs])
 
 
+def test_a_study_with_a_diverged_seed_stops_in_one_line_and_trains_nothing(studied, tmp_path):
+    """A seed whose run diverged (FAILED, tagged with the step) is neither counted nor trained
+    again by the same study command: one line names the job and the step, the study ends FAILED
+    and no run is added (the study's own run, reopened, ends FAILED)."""
+    from walkers.training.provenance import DIVERGED_TAG
+
+    _, bundle, _ = studied
+    target = new_store(tmp_path)
+    bundles.import_bundle(target["client"], bundle)
+    client = target["client"]
+    (job,) = [
+        r for r in all_runs(client) if r.data.tags.get("walkers.job_key") == "ab/t/long/pendulum/2"
+    ]
+    client.set_terminated(job.info.run_id, "FAILED")
+    client.set_tag(job.info.run_id, DIVERGED_TAG, "300")
+    before = {r.info.run_id for r in all_runs(client)}
+
+    line = one_line_error(run_cli(study(target, *OBVIOUS), cwd=target["path"]), code=1)
+    assert line == (
+        f"error: job ab/t/long/pendulum/2 diverged at step 300 (run {job.info.run_id}): a study "
+        "can neither count the seed nor train it again (a new attempt would diverge again, or "
+        "leave the arm's failures out of its samples); change the arm (a lower learning rate, "
+        "say) and run it as a new study"
+    )
+    after = all_runs(client)
+    assert {r.info.run_id for r in after} == before  # the study's own run reopened, no job run
+    assert [r.info.status for r in after if r.data.tags.get("walkers.kind") == "ab"] == ["FAILED"]
+
+
 def _rewritten(bundle, tmp_path, change) -> str:
     copy = tmp_path / "edited"
     shutil.copytree(bundle, copy)

@@ -23,6 +23,7 @@ from walkers.analysis.arms import arm_config, run_params
 from walkers.analysis.sequential import Design
 from walkers.errors import ConfigError
 from walkers.tracking import differing_keys
+from walkers.training.provenance import DIVERGED_TAG
 
 log = logging.getLogger("walkers")
 
@@ -96,6 +97,17 @@ def finished_scores(runs: list, spec: StudySpec) -> Scores:
             continue
         by_seed[seed] = run.data.metrics[spec.score]
     return scores
+
+
+def diverged(runs: list, keys: set[str]) -> list:
+    """The runs of the jobs ``keys`` that ended FAILED because their updates diverged."""
+    return [
+        run
+        for run in runs
+        if run.info.status == tracking.FAILED
+        and DIVERGED_TAG in run.data.tags
+        and run.data.tags.get(tracking.JOB_KEY_TAG) in keys
+    ]
 
 
 def steps_logged(runs: list) -> dict[str, int]:

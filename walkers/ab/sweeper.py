@@ -46,7 +46,7 @@ from walkers.ab.spec import StudySpec
 from walkers.analysis.sequential import A_BETTER, B_BETTER, EQUAL, Design, equal_line
 from walkers.cli import one_line_hydra_error
 from walkers.errors import ConfigError
-from walkers.training.provenance import shareable
+from walkers.training.provenance import DIVERGED_TAG, shareable
 from walkers.training.run import SEED_IN_KEY
 from walkers.training.validate import validate
 from walkers.tuning.study_runs import end_jobs_runs
@@ -145,6 +145,7 @@ class StudySweeper(Sweeper):
             if not jobs:
                 log.info("%s", ledger.cpu_hours_line(hours))
                 return now
+            _refuse_diverged(runs, {spec.job_key(*job) for job in jobs})
             # the most work left first (fresh jobs, then resumed ones by the steps they lack): a
             # round ends with its last job, and a long one started last would run alone
             logged = ledger.steps_logged(runs)
@@ -326,6 +327,20 @@ class StudySweeper(Sweeper):
                 file=sys.stderr,
             )
         log.info("study %r: %s", spec.name, equal_line(design))
+
+
+def _refuse_diverged(runs: list, keys: set[str]) -> None:
+    """A seed whose run diverged can be neither counted (it has no final score) nor trained
+    again: on a CPU it diverges again at the same step, and an attempt that did not (a GPU's
+    nondeterminism) would leave the arm's failures out of its samples."""
+    for run in ledger.diverged(runs, keys):
+        raise JobsFailed(
+            f"job {run.data.tags[tracking.JOB_KEY_TAG]} diverged at step "
+            f"{run.data.tags[DIVERGED_TAG]} (run {run.info.run_id}): a study can neither count "
+            "the seed nor train it again (a new attempt would diverge again, or leave the arm's "
+            "failures out of its samples); change the arm (a lower learning rate, say) and run it "
+            "as a new study"
+        )
 
 
 def _cuda_available() -> bool:

@@ -245,3 +245,49 @@ def test_a_study_whose_first_look_cannot_decide_runs_with_a_warning(store):
     assert parent.data.tags["ab.equal_looks"] == "5"
     assert parent.data.tags["answer.short_vs_long_on_pendulum"] == "A better"
     assert len(job_runs(store)) == 10  # the look at 3 continued, the look at 5 decided
+
+
+def test_a_study_rerun_with_another_design_is_refused_and_its_normalization_is_part_of_it(
+    store, monkeypatch
+):
+    """A study's test is fixed when it starts: its alpha, or an env's normalization re-measured
+    since (a random score from benchmarks/random_scores.py), would move what its looks answered;
+    a study from before the normalization was recorded is not held to it."""
+    import dataclasses
+
+    from walkers.ab import ledger
+    from walkers.ab.spec import EnvScores
+
+    declared = OmegaConf.to_container(OmegaConf.load(CONF_DIR / "ab" / "tiny.yaml").hydra.sweeper)
+    spec = StudySpec.parse(**declared)
+    client = store["client"]
+    ledger.open_study_run(client, "designs", spec, store["path"]).end("KILLED")
+    (study,) = all_runs(client)
+    assert "pendulum: random=" in study.data.params["ab.normalization"]
+
+    moved = dict(spec.scores, pendulum=EnvScores(-1500.0, spec.scores["pendulum"].reference))
+    for changed, key in [
+        (dataclasses.replace(spec, alpha=0.01), "ab.alpha"),
+        (dataclasses.replace(spec, scores=moved), "ab.normalization"),
+    ]:
+        with pytest.raises(ConfigError) as refused:
+            ledger.open_study_run(client, "designs", changed, store["path"])
+        assert str(refused.value).startswith(
+            f"study 'tiny' in experiment 'designs' was started with {key}="
+        )
+        assert "a study's test is fixed when it starts" in str(refused.value)
+    assert client.get_run(study.info.run_id).info.status == "KILLED"  # not reopened
+    ledger.open_study_run(client, "designs", spec, store["path"]).end("FINISHED")  # the same: on
+
+    older = client.create_run(  # a study started before its normalization was recorded
+        client.get_experiment_by_name("designs").experiment_id,
+        tags={"walkers.kind": "ab", "walkers.ab": "older"},
+    )
+    for key, value in spec.design_params().items():
+        if key != "ab.normalization":
+            client.log_param(older.info.run_id, key, value)
+    client.set_terminated(older.info.run_id, "KILLED")
+    renamed = dataclasses.replace(spec, name="older", scores=moved)
+    assert ledger.open_study_run(client, "designs", renamed, store["path"]).run_id == (
+        older.info.run_id
+    )

@@ -218,6 +218,12 @@ class StudySpec:
             "ab.score": self.score,
             "ab.alpha": repr(self.alpha),
             "ab.smallest_difference": repr(self.smallest_difference),
+            # what a normalized point is on each env: the smallest difference and the suite's
+            # scores are in those points, so a re-measured random score would move both
+            "ab.normalization": ", ".join(
+                f"{env}: random={score.random!r} reference={score.reference!r}"
+                for env, score in self.scores.items()
+            ),
         }
 
 

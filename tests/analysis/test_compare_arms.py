@@ -257,6 +257,30 @@ def _seed_runs(algo: str, finals: list[float]) -> list[SeedRun]:
     ]  # fmt: skip
 
 
+def test_the_rate_of_learning_is_compared_only_between_arms_evaluated_alike():
+    """The AUC is the mean of a run's evaluations: TD3 every 100 steps against DT every 200 over
+    the same budget would favour the coarser grid on a rising curve; no AUC pair is formed. An
+    AUC difference the second arm wins reliably is said of it, not called "no difference"."""
+    slow = _seed_runs("slow", [100, 101, 102, 103, 104, 105])
+    fast = _seed_runs("fast", [90, 91, 92, 93, 94, 95])
+    for i, run in enumerate(fast):
+        run.summary["final/auc"] = 80.0 + i  # reaches its level sooner
+    for i, run in enumerate(slow):
+        run.summary["final/auc"] = 40.0 + i
+    settings = {"env_id": "Pendulum-v1", "threshold": -200.0, "budgets": {"env_steps": 200},
+                "score": "final/return_mean", "n_resamples": 200}  # fmt: skip
+    both = compare_groups({"slow": slow, "fast": fast}, ["slow", "fast"], **settings)
+    assert [p.quantity for p in both.pairs] == ["score", "auc"]
+    said = markdown(both, source="test")
+    assert "fast learns faster (AUC (rate of learning): P(fast > slow) = 1 [1, 1]" in said, said
+    assert "no reliable difference in AUC" not in said
+    for run in fast:
+        run.steps = np.array([200])
+        run.returns = np.array([run.summary["final/return_mean"]])
+    coarser = compare_groups({"slow": slow, "fast": fast}, ["slow", "fast"], **settings)
+    assert [p.quantity for p in coarser.pairs] == ["score"]
+
+
 def test_published_figures_stand_beside_the_measured_ones_for_the_algorithms_reported():
     env = compose_cfg(["env=walker2d"], config_name="compare").env
     figures = published_figures(env, ["td3"])

@@ -89,6 +89,18 @@ def test_two_identical_arms_are_called_different_at_most_alpha_of_the_time(draw,
     assert rejection_rate(draw, draw, n) <= ALPHA + MC_TOLERANCE
 
 
+def test_a_large_difference_has_a_power_and_fewer_seeds_for_larger_differences():
+    """SciPy's noncentral t turned NaN in the far tail from a noncentrality of about 10: a
+    difference four times the smallest one had power NaN, and the seeds a plan asked for jumped
+    about (12 for a difference of 2, 8 for 12, 11 for 29)."""
+    a = np.arange(100.0, 105.0)
+    big = power.pair_power(a, a - 20, 0.05, 10.4)
+    assert big.power == pytest.approx(1.0) and big.power_for_smallest > 0.99
+    needed = [power.seeds_needed(a, a, d, 0.8, 0.05, power.CLOSED_FORM) for d in (2, 6, 12, 29)]
+    assert needed == sorted(needed, reverse=True) and needed[-1] == needed[-2]
+    assert all(n is not None for n in needed)
+
+
 def test_too_few_seeds_can_never_conclude():
     assert power.min_seeds_for_rank_test(0.05) == 4  # 3 vs 3: the smallest p is 0.1
     assert power.power_of([1, 2, 3], [4, 5, 6], 5.0, 3, 0.05, power.CLOSED_FORM) == 0.0

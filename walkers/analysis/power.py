@@ -63,8 +63,9 @@ def welch_power(
     va, vb = sd_a**2 / n_a, sd_b**2 / n_b
     df = (va + vb) ** 2 / (va**2 / (n_a - 1) + vb**2 / (n_b - 1))
     critical = sps.t.ppf(1 - alpha / 2, df)
-    ncp = delta / se
-    return float(sps.nct.sf(critical, df, ncp) + sps.nct.cdf(-critical, df, ncp))
+    ncp = abs(delta) / se  # symmetric: P(T > c) at +ncp and at -ncp (SciPy's nct.cdf of the
+    # far tail turns NaN from ncp ~ 10, which made a large difference's power NaN)
+    return float(sps.nct.sf(critical, df, ncp) + sps.nct.sf(critical, df, -ncp))
 
 
 def min_seeds_for_rank_test(alpha: float = 0.05) -> int:

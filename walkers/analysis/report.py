@@ -112,7 +112,10 @@ def budgets_text(c: Comparison) -> str:
 
 
 def _clause(pair: PairResult, confidence: float) -> str:
-    """``pair`` oriented so that its ``a`` looks better: what the evidence says, with it."""
+    """What the evidence says of ``pair``, named from the side it favours (the arms are ordered
+    by the final score's IQM, which need not be the side a reliable AUC difference favours)."""
+    if pair.decisive(confidence) < 0:
+        pair = pair.flipped()
     name = QUANTITY_NAMES[pair.quantity]
     evidence = (
         f"P({pair.a} > {pair.b}) = {_interval(*pair.p_improvement)}, "

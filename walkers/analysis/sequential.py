@@ -37,9 +37,9 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import stats as sps
 
 from walkers.analysis.power import RANK_TEST_EFFICIENCY, welch_power
+from walkers.analysis.stats import a_ranks_higher, mann_whitney_p
 
 A_BETTER, B_BETTER, EQUAL, CONTINUE, NOT_SETTLED = (
     "A better",
@@ -178,20 +178,7 @@ class Answer:
 
 
 def _two_sided_p(a: np.ndarray, b: np.ndarray) -> float:
-    return _mann_whitney(a, b, "two-sided")
-
-
-def _mann_whitney(a: np.ndarray, b: np.ndarray, alternative: str) -> float:
-    """Exact without ties (valid at the tiny levels a family of questions needs), else normal,
-    never below the exact test's smallest p (seeds tied at an env's capped return could
-    otherwise decide at a look the design says cannot)."""
-    tied = len(np.unique(np.concatenate([a, b]))) < len(a) + len(b)
-    method = "asymptotic" if tied else "exact"
-    p = float(sps.mannwhitneyu(a, b, alternative=alternative, method=method).pvalue)
-    if not tied:
-        return p
-    floor = (2 if alternative == "two-sided" else 1) / math.comb(len(a) + len(b), len(a))
-    return max(p, min(1.0, floor))
+    return mann_whitney_p(a, b, "two-sided")
 
 
 def decide_look(a: Sequence[float], b: Sequence[float], design: Design, k: int) -> Answer:
@@ -211,12 +198,11 @@ def _look(a_seeds: tuple[float, ...], b_seeds: tuple[float, ...], design: Design
     p = _two_sided_p(a, b)
     difference = float(a.mean() - b.mean())
     if p <= level:  # the side the rank test found, not the means' (one outlier seed flips those)
-        a_ranks_higher = sps.mannwhitneyu(a, b).statistic > len(a) * len(b) / 2
-        return Answer(A_BETTER if a_ranks_higher else B_BETTER, k, n, p, difference)
+        return Answer(A_BETTER if a_ranks_higher(a, b) else B_BETTER, k, n, p, difference)
     if design.delta > 0:
         # TOST: "A - B <= -delta" and "A - B >= delta" both rejected
-        above = _mann_whitney(a + design.delta, b, "greater")
-        below = _mann_whitney(a - design.delta, b, "less")
+        above = mann_whitney_p(a + design.delta, b, "greater")
+        below = mann_whitney_p(a - design.delta, b, "less")
         if max(above, below) <= level:
             return Answer(EQUAL, k, n, p, difference)
     if k < len(design.looks) - 1:

@@ -81,6 +81,12 @@ def probability_of_improvement(a: Sequence[float], b: Sequence[float]) -> float:
     return float(_improvement(a, b))
 
 
+def a_ranks_higher(a: Sequence[float], b: Sequence[float]) -> bool:
+    """Whether A's seeds rank above B's (P(A > B) > 1/2): the side a rank test's rejection
+    favours, which one outlier seed can flip in the means but not here."""
+    return probability_of_improvement(a, b) > 0.5
+
+
 def poi_ci(
     a: Sequence[float],
     b: Sequence[float],
@@ -95,11 +101,21 @@ def poi_ci(
     return (point, *_bootstrap((a, b), _improvement, confidence, n_resamples, seed))
 
 
-def mann_whitney_p(a: Sequence[float], b: Sequence[float]) -> float:
-    """Two-sided Mann-Whitney U test p-value (exact for small samples without ties)."""
+def mann_whitney_p(a: Sequence[float], b: Sequence[float], alternative: str = "two-sided") -> float:
+    """Mann-Whitney U test p-value: exact without ties (valid at the tiny levels a family of
+    questions needs), else the normal approximation, never below the exact test's smallest p
+    (seeds tied at a capped return, InvertedPendulum's 1000, made it 0.044 for 3 against 4
+    seeds, where no ordering of 7 seeds gives less than 0.057)."""
     if min(len(a), len(b)) < 1:
         return math.nan
-    return float(sps.mannwhitneyu(a, b, alternative="two-sided").pvalue)
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    tied = len(np.unique(np.concatenate([a, b]))) < len(a) + len(b)
+    method = "asymptotic" if tied else "exact"
+    p = float(sps.mannwhitneyu(a, b, alternative=alternative, method=method).pvalue)
+    if not tied:
+        return p
+    floor = (2 if alternative == "two-sided" else 1) / math.comb(len(a) + len(b), len(a))
+    return max(p, min(1.0, floor))
 
 
 def mean_band(

@@ -240,12 +240,9 @@ def write_suite(comparisons, tasks: dict[str, Task], cfg: DictConfig, out: Path,
         p, lo, hi = improvement[f"{a} vs {b}"]
         for t in tasks:
             key = f"{a} vs {b} on {t}"
-            diff = np.mean(scores[a][t]) - np.mean(scores[b][t])
-            verdict = (
-                f"{a if diff > 0 else b} better"
-                if adjusted[key] < alpha
-                else "no reliable difference"
-            )
+            verdict = "no reliable difference"
+            if adjusted[key] < alpha:  # the side the rank test found, not the means'
+                verdict = f"{a if stats.a_ranks_higher(scores[a][t], scores[b][t]) else b} better"
             lines.append(
                 f"| {a} vs {b} | {p:.2f} [{lo:.2f}, {hi:.2f}] | {t} | {raw_p[key]:.4f} "
                 f"| {adjusted[key]:.4f} | {verdict} |"

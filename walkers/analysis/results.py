@@ -112,8 +112,12 @@ class AlgoResult:
     @property
     def normalized_iqm(self) -> tuple[float | None, float | None, float | None]:
         """The IQM of the final returns and its CI as normalized scores (an affine map of the
-        returns, so the CI maps too)."""
-        return tuple(self.normalized(v) for v in self.iqm)
+        returns, so the CI maps too; its ends are swapped where the reference is below the
+        random score, which makes the map decreasing)."""
+        point, low, high = (self.normalized(v) for v in self.iqm)
+        if low is not None and high is not None and low > high:
+            low, high = high, low
+        return point, low, high
 
     @property
     def cpu_hours(self) -> tuple[float, int]:

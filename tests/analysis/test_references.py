@@ -195,6 +195,7 @@ def test_references_on_an_env_the_store_has_no_runs_of_are_held_to_each_other(st
     assert "has eval_episodes=10, the runs it stands beside 2" in str(refused.value)
 
 
+@pytest.mark.slow  # `make test-slow`: a run trained and continued on the command line
 def test_a_run_continued_to_a_longer_budget_is_compared_at_the_budget_it_trained_for(
     stores, tmp_path
 ):

@@ -164,6 +164,7 @@ def test_a_study_that_trains_nothing_bundles_the_runs_it_decided_on(studied, tmp
     assert keys == sorted(["the study", *jobs])
 
 
+@pytest.mark.slow  # `make test-slow`: the study command on a copy of the study
 def test_a_study_with_a_diverged_seed_stops_in_one_line_and_trains_nothing(studied, tmp_path):
     """A seed whose run diverged (FAILED, tagged with the step) is neither counted nor trained
     again by the same study command: one line names the job and the step, the study ends FAILED

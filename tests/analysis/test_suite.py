@@ -94,9 +94,13 @@ def test_holm_adjusts_step_down():
     assert adjusted == pytest.approx({"a": 0.03, "c": 0.06, "b": 0.06})
 
 
-def test_performance_profile_counts_runs_above_tau():
-    profile = suite.performance_profile(np.array([0.0, 50.0, 100.0]), np.array([-1.0, 25.0, 100.0]))
+def test_performance_profile_counts_runs_above_tau_each_task_weighed_alike():
+    taus = np.array([-1.0, 25.0, 100.0])
+    profile = suite.performance_profile({"a": np.array([0.0, 50.0, 100.0])}, taus)
     assert profile.tolist() == pytest.approx([1.0, 2 / 3, 0.0])
+    # 1 seed above 25 of 1 on one env, 0 of 3 on the other: 1/2, not the pooled 1/4 (rliable)
+    two = {"few": np.array([30.0]), "many": np.array([0.0, 10.0, 20.0])}
+    assert suite.performance_profile(two, taus).tolist() == pytest.approx([1.0, 0.5, 0.0])
 
 
 @pytest.mark.slow  # `make test-slow`: trains two envs (the default suite renders suite reports

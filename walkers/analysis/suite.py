@@ -108,9 +108,11 @@ def average_improvement(
     return (point, *_interval(draws, confidence))
 
 
-def performance_profile(scores: np.ndarray, taus: np.ndarray) -> np.ndarray:
-    """The fraction of runs whose normalized score is above each tau."""
-    return (np.asarray(scores)[None, :] > np.asarray(taus)[:, None]).mean(axis=1)
+def performance_profile(per_task: Mapping[str, np.ndarray], taus: np.ndarray) -> np.ndarray:
+    """The fraction of runs whose normalized score is above each tau, each task's fraction
+    weighed alike (rliable's run-score profile): an env with more seeds does not count more."""
+    taus = np.asarray(taus)[:, None]
+    return np.mean([(np.asarray(x)[None, :] > taus).mean(axis=1) for x in per_task.values()], 0)
 
 
 def holm(p_values: Mapping[str, float]) -> dict[str, float]:

@@ -338,7 +338,7 @@ def _plots(scores, curves, out: Path, axis: str) -> None:
     for arm, per_task in scores.items():
         ax.plot(
             taus,
-            suite.performance_profile(np.concatenate(list(per_task.values())), taus),
+            suite.performance_profile(per_task, taus),
             label=arm,
         )
     ax.set(

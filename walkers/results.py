@@ -39,11 +39,15 @@ def pages() -> list[str]:
     return sorted(p.parent.name for p in RESULTS_DIR.glob("*/page.yaml"))
 
 
+def _check_page(name: str) -> None:
+    if not (RESULTS_DIR / name / "page.yaml").is_file():
+        raise ConfigError(f"results={name!r} is not allowed: one of {', '.join(pages())}")
+
+
 def write_page(name: str, out: Path | None = None) -> Path:
     """Write ``results/NAME/report`` (or ``out``) from the bundle; returns the report's folder."""
+    _check_page(name)
     folder = RESULTS_DIR / name
-    if not (folder / "page.yaml").is_file():
-        raise ConfigError(f"results={name!r} is not allowed: one of {', '.join(pages())}")
     page = yaml.safe_load((folder / "page.yaml").read_text())
     out = out or folder / "report"
     experiment = bundles.read_bundle(folder / "bundle")["source"]["experiment"]
@@ -145,10 +149,11 @@ def main(argv: list[str]) -> int:
             print(path)
         return 0
     names = argv or pages()
-    unknown = [name for name in names if name not in pages()]
-    if unknown:  # before anything is written
-        print(f"error: results={unknown[0]!r} is not allowed: one of {', '.join(pages())}",
-              file=sys.stderr)  # fmt: skip
+    try:  # every name before anything is written
+        for name in names:
+            _check_page(name)
+    except ConfigError as e:
+        print(f"error: {e}", file=sys.stderr)
         return 2
     failed = 0
     for name in names:  # one page refused: the others are still written

@@ -28,6 +28,7 @@ from walkers import tracking
 from walkers.analysis.arms import is_not_the_experiment, run_params
 from walkers.errors import ConfigError
 from walkers.tracking.bundles import FINGERPRINT_TAG, BundleRuns
+from walkers.training.provenance import code_digests
 
 #: The param a reference's runs carry: the bundle's name.
 REFERENCE_KEY = "reference"
@@ -121,22 +122,16 @@ def recorded_fingerprint(tags: Mapping[str, str], config: str | None) -> list[fl
     made it, whatever it carries)."""
     from walkers.agents.fingerprint import of_run  # torch: see _check_code
 
-    if len(_code_digests(tags)) > 1:
+    if len(code_digests(tags)) > 1:
         return None
     known = tags.get(FINGERPRINT_TAG)
     return json.loads(known) if known else of_run(tags, config)
 
 
-def _code_digests(tags: Mapping[str, str]) -> list[str]:
-    from walkers.agents.fingerprint import CODE_DIGEST_TAG  # torch: see _check_code
-
-    return [d for d in tags.get(CODE_DIGEST_TAG, "").split("+") if d]
-
-
 def _check_code(reference: BundleRuns, run, where: str) -> None:
     record = reference.records[run.info.run_id]
     recorded = record.get("fingerprint")
-    digests = _code_digests(run.data.tags)
+    digests = code_digests(run.data.tags)
     if len(digests) > 1:  # a bundle written before exports knew: its fingerprint is one code's
         raise ConfigError(
             f"{where} was trained by {len(digests)} codes in turn (resumed under another: "

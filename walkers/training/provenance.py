@@ -68,9 +68,17 @@ def resumed_code_tags(tags_before: Mapping[str, str]) -> dict[str, str]:
     from walkers.agents.fingerprint import CODE_DIGEST_TAG, code_digest  # torch: module doc
 
     before, now = tags_before.get(CODE_DIGEST_TAG), code_digest()
-    if before is None or now in before.split("+"):
+    if before is None or now in code_digests(tags_before):
         return {}
     return {CODE_DIGEST_TAG: f"{before}+{now}"}
+
+
+def code_digests(tags: Mapping[str, str]) -> list[str]:
+    """Every code digest that trained a run, in order (one, unless it was resumed by other
+    update code: :func:`resumed_code_tags`); none for a run from before the tag."""
+    from walkers.agents.fingerprint import CODE_DIGEST_TAG  # torch: module doc
+
+    return [digest for digest in tags.get(CODE_DIGEST_TAG, "").split("+") if digest]
 
 
 def package_versions() -> str:

@@ -98,7 +98,7 @@ bench-gpu: $(STAMP)  ## the prepared script for a lent GPU, under 5 minutes: the
 offline-gpu:  ## on a lent GPU: the offline study's arms, DT and TD3+BC seeds 0-2, on one dataset carried in .walkers/datasets (DATASET=walkers/walker2d/medium-v0), side by side, each algorithm's finished runs a bundle in $$OUT/bundles for walkers.ingest here (benchmarks/device_offline.sh; sets itself up from .whl/)
 	bash benchmarks/device_offline.sh
 
-baselines-gpu:  ## on a lent GPU: the next off-policy 100k baselines results/ lacks, 3 seeds as one captured population each, 4 side by side, each finished one a results page in $$OUT/results (benchmarks/device_baselines.sh; sets itself up from .whl/)
+baselines-gpu:  ## on a lent GPU: the next off-policy 100k baselines results/ lacks, 3 seeds as one captured population each, JOBS (1) at a time, each finished one a results page in $$OUT/results.tar.gz (benchmarks/device_baselines.sh; sets itself up from .whl/)
 	bash benchmarks/device_baselines.sh
 
 test-gpu: $(STAMP)  ## on a GPU machine: the agents, populations, PPO, checkpoints and resume with device=auto on CUDA (a CPU machine runs them on the CPU)

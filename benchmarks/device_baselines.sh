@@ -1,12 +1,17 @@
 #!/usr/bin/env bash
 # The results call of a lent GPU: off-policy locomotion baselines that results/ lacks, at 100k env
 # steps, each (algorithm, env)'s 3 seeds as one captured population, JOBS of them side by side on
-# the one GPU (a captured update leaves it mostly idle), each one that finishes exported as a
-# results page (bundle + page.yaml) that comes home under $OUT/results/:
+# the one GPU, each one that finishes exported as a results page (bundle + page.yaml), the pages
+# brought home as one $OUT/results.tar.gz and the logs as $OUT/logs.tar.gz (a call brings back at
+# most 8 files, none more than 2 folders down: a page's bundle is 3):
 #
 #   here:   bash benchmarks/device_wheels.sh        # once: the wheels the machine lacks, in .whl/
 #   device: run(command="bash benchmarks/device_baselines.sh", carry=[".whl"], timeout_s=560)
-#   here:   cp -r <files_at>/results/* results/ && make results docs   # then a README row each
+#   here:   tar xzf <files_at>/results.tar.gz && make results docs   # then a README row each
+#
+# Sizing (H200, 2026-11-28): one captured TD7 seed steps 328 env steps/s on an idle GPU; three TD7
+# populations of 3 side by side kept it 99% busy and none reached 100k steps in 420 s. So TD7 runs
+# one population per call (JOBS=1); the cheaper captured updates (TD3, DDPG, SAC) take more.
 #
 # A pair whose page results/ already holds is skipped, so each GPU call takes the next ones in
 # PAIRS' order. Every job stops itself (SIGINT: its runs end KILLED) DEADLINE seconds after the
@@ -23,7 +28,7 @@ RESULTS=${RESULTS:-$REPO/results}  # the pages there already
 # The costliest on a CPU first (TD7 about 4x TD3's time per step, CrossQ's 2048-wide critics about 10x): the
 # 2-core machines take the cheap ones (make baseline).
 PAIRS=${PAIRS:-"td7:walker2d td7:hopper td7:half_cheetah crossq:hopper crossq:half_cheetah sac:walker2d sac:half_cheetah ddpg:walker2d ddpg:hopper ddpg:half_cheetah"}
-JOBS=${JOBS:-4}
+JOBS=${JOBS:-1}
 STEPS=${STEPS:-100000}
 DEADLINE=${DEADLINE:-440}
 DEVICE=${DEVICE:-cuda}
@@ -57,9 +62,13 @@ train() {  # train ALGO ENV: its 3 seeds as one population, into a store of its 
   local rc=$?
   case $rc in
     0) echo "$name: trained in ${SECONDS}s" ;;
-    124) echo "$name: stopped at the deadline, ${DEADLINE}s (its runs end KILLED, on the machine)" ;;
+    124) echo "$name: stopped at the deadline, ${DEADLINE}s, at $(reached "$name") of $STEPS steps (its runs end KILLED, on the machine)" ;;
     *) echo "$name: train exit $rc after ${SECONDS}s (its log: $OUT/$name.log)" ;;
   esac >> "$OUT/summary.txt"
+}
+
+reached() {  # reached NAME: the env steps its runs had logged through, for sizing the next call
+  "$py" -c "import sqlite3, sys; c = sqlite3.connect(sys.argv[1]); print(c.execute(\"select group_concat(value, ', ') from tags where key = 'walkers.logged_through'\").fetchone()[0] or 0)" "$WORK/$1.db" 2>/dev/null || echo "unknown"
 }
 
 page() {  # page ALGO ENV: the finished runs as results/<name>/{bundle,page.yaml}
@@ -88,4 +97,8 @@ for pair in "${todo[@]}"; do
   name=${pair%%:*}_${pair##*:}_$steps_k
   echo "=== $name"; grep -E "final/return_last10|ended|error" "$OUT/$name.log" | tail -4
 done
+# what comes back: summary.txt, setup.log and the two archives
+tar czf "$OUT/logs.tar.gz" -C "$OUT" $(cd "$OUT" && ls ./*_"$steps_k".log 2>/dev/null) && rm -f "$OUT"/*_"$steps_k".log
+if [[ -n $(ls -A "$OUT/results") ]]; then tar czf "$OUT/results.tar.gz" -C "$OUT" results; fi
+rm -rf "$OUT/results"
 cat "$OUT/summary.txt" 2>/dev/null

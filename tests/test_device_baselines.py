@@ -1,9 +1,12 @@
 """benchmarks/device_baselines.sh, the results call of a lent GPU, tried on the CPU: it takes the
-pairs whose page results/ lacks, trains each as one population, and brings home a page that
-`walkers.results` can read for each population that finished, and none for one its deadline
-stopped."""
+pairs whose page results/ lacks, trains each as one population, and brings home, in one archive
+(a call brings back at most 8 files, none deeper than 2 folders), a page that `walkers.results`
+can read for each population that finished, and none for one its deadline stopped, but how far it
+got."""
 
 from __future__ import annotations
+
+import tarfile
 
 import pytest
 import yaml
@@ -38,9 +41,13 @@ def test_the_pairs_results_lacks_come_home_as_pages_walkers_results_reads(tmp_pa
 
     assert done.returncode == 0, done.stdout + done.stderr
     assert "device_baselines: td3:pendulum on CPU" in done.stdout  # td3:hopper has its page
-    homes = sorted(p.name for p in (tmp_path / "out" / "results").iterdir())
+    out = tmp_path / "out"
+    assert sorted(p.name for p in out.iterdir()) == ["logs.tar.gz", "results.tar.gz", "summary.txt"]
+    with tarfile.open(out / "results.tar.gz") as archive:
+        archive.extractall(tmp_path / "home", filter="data")
+    homes = sorted(p.name for p in (tmp_path / "home" / "results").iterdir())
     assert homes == ["td3_pendulum_1k"]
-    home = tmp_path / "out" / "results" / "td3_pendulum_1k"
+    home = tmp_path / "home" / "results" / "td3_pendulum_1k"
     page = yaml.safe_load((home / "page.yaml").read_text())
     assert {"title", "budget", "machine", "command", "commit", "date", "compare"} <= set(page)
     assert page["compare"] == ["env=pendulum"]
@@ -57,5 +64,9 @@ def test_a_population_its_deadline_stops_brings_no_page_and_the_call_still_ends(
 
     assert done.returncode == 0, done.stdout + done.stderr
     assert "td3_pendulum_100k: stopped at the deadline" in done.stdout  # SIGINT, then KILLED
+    assert "of 100000 steps" in done.stdout  # how far it got: the next call's sizing
     assert "td3_pendulum_100k: nothing finished" in done.stdout
-    assert not (tmp_path / "out" / "results" / "td3_pendulum_100k").exists()
+    out = tmp_path / "out"
+    assert sorted(p.name for p in out.iterdir()) == ["logs.tar.gz", "summary.txt"]  # no pages
+    with tarfile.open(out / "logs.tar.gz") as archive:
+        assert archive.getnames() == ["./td3_pendulum_100k.log"]

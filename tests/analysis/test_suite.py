@@ -116,7 +116,7 @@ def test_a_suite_report_over_two_envs(store):
     out = store["path"] / "reports"
     result = run_cli(
         ["envs=[pendulum,inverted_pendulum]", "tracking.experiment=suite", "n_resamples=200",
-         f"out={out}/suite_test/x", *store["overrides"]],
+         "confidence=0.9", f"out={out}/suite_test/x", *store["overrides"]],
         cwd=store["path"],
         module="walkers.compare",
     )  # fmt: skip
@@ -131,6 +131,7 @@ def test_a_suite_report_over_two_envs(store):
     assert "Holm" in summary["correction"]
     report = (suite_dir / "report.md").read_text()
     assert "| reinforce |" in report and "optimality gap" in report
+    assert "band is the IQM's 90% stratified bootstrap CI" in report  # the report's level, drawn
     for name in ("performance_profile.png", "sample_efficiency.png"):
         assert (suite_dir / name).stat().st_size > 1000
     for env_id in ("Pendulum-v1", "InvertedPendulum-v5"):  # each env keeps its own section

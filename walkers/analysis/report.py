@@ -26,8 +26,9 @@ from walkers.tracking.names import ENV_STEPS
 QUANTITY_NAMES = {"score": "final return", "auc": "AUC (rate of learning)"}
 
 
-def _normalized_lines(r) -> list[str]:
-    """An offline arm's normalized score beside its raw return, and its behaviour policy's."""
+def _normalized_lines(r, score: str) -> list[str]:
+    """An offline arm's normalized score (of the report's ``score``, a return or the mean return
+    over the run) beside its raw value, and its behaviour policy's."""
     refs, (point, low, high) = r.runs[0].references, r.normalized_iqm
     if refs is None or point is None:
         if r.normalized_score_mean is None:
@@ -45,7 +46,7 @@ def _normalized_lines(r) -> list[str]:
     )
     ci = f" [{_num(low)}, {_num(high)}]" if low is not None else ""
     line = (
-        f"{r.label}: normalized score {_num(point)}{ci} (IQM of the final returns, "
+        f"{r.label}: normalized score {_num(point)}{ci} (IQM of `{score}`, "
         f"{_num(r.iqm[0])}, and its CI, on {scale})"
     )
     if r.runs[0].behaviour_return is not None:
@@ -315,7 +316,7 @@ def markdown(c: Comparison, source: str) -> str:
             "`python -m walkers.plan` plans a study from these runs.",
         ]
     for r in c.algos:
-        out += _normalized_lines(r) + _per_target_lines(r)
+        out += _normalized_lines(r, c.score) + _per_target_lines(r)
     if len(c.grids) > 1:
         out += [
             "",

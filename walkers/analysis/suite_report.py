@@ -252,9 +252,12 @@ def write_suite(comparisons, tasks: dict[str, Task], cfg: DictConfig, out: Path,
         "![performance profile](performance_profile.png)",
         "![sample efficiency](sample_efficiency.png)",
         "",
+        f"The sample-efficiency band is the IQM's {cfg.confidence:.0%} stratified bootstrap CI.",
+        "",
     ]
     (out / "report.md").write_text("\n".join(lines))
-    _plots(scores, curves, out, AXIS_NAMES[ENV_STEPS if kind == "env" else GRADIENT_STEPS])
+    axis = AXIS_NAMES[ENV_STEPS if kind == "env" else GRADIENT_STEPS]
+    _plots(scores, curves, out, axis, cfg.confidence)
     summary = {
         f"{kind}s": {
             t.name: {"random": t.random, "reference": t.reference}
@@ -332,7 +335,7 @@ def _per_target_lines(results, tasks: dict[str, Task]) -> list[str]:
     return lines
 
 
-def _plots(scores, curves, out: Path, axis: str) -> None:
+def _plots(scores, curves, out: Path, axis: str, confidence: float) -> None:
     taus = np.linspace(-10, 150, 161)
     fig, ax = plt.subplots(figsize=(6, 4))
     for arm, per_task in scores.items():
@@ -352,10 +355,14 @@ def _plots(scores, curves, out: Path, axis: str) -> None:
     for arm, per_task in curves.items():
         last = min(steps[-1] for runs in per_task.values() for steps, _ in runs)
         grid = np.linspace(0, last, 50)
-        point, low, high = suite.iqm_curve(per_task, grid)
+        point, low, high = suite.iqm_curve(per_task, grid, confidence=confidence)
         ax.plot(grid, point, label=arm)
         ax.fill_between(grid, low, high, alpha=0.2)
-    ax.set(xlabel=axis, ylabel="IQM normalized eval return", title="Sample efficiency")
+    ax.set(
+        xlabel=axis,
+        ylabel="IQM normalized eval return",
+        title=f"Sample efficiency ({confidence:.0%} CI)",
+    )
     ax.legend()
     fig.tight_layout()
     fig.savefig(out / "sample_efficiency.png", dpi=100)

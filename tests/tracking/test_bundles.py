@@ -143,6 +143,7 @@ def test_an_imported_study_reports_to_the_digit_and_a_second_import_adds_nothing
     assert bundles.import_bundle(source["client"], back).added == []
 
 
+@pytest.mark.slow  # `make test-slow`: the study command again (the default suite: 10 minutes)
 def test_a_study_that_trains_nothing_bundles_the_runs_it_decided_on(studied, tmp_path):
     """Its jobs' runs were in the store before its own run began (imported, the imported study
     run then deleted in the UI): it trains nothing, and the bundle it writes holds its run and

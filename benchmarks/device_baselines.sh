@@ -81,7 +81,7 @@ page() {  # page ALGO ENV: the finished runs as results/<name>/{bundle,page.yaml
 # results/$name: what this page is and how its report is made (python -m walkers.results $name).
 title: "${algo^^} on $env_id, the first $steps_k steps: a locomotion baseline (walkers' defaults${EXTRA:+, but $EXTRA}), three seeds as one population on a GPU"
 budget: "$STEPS env steps per seed (of the 1M asked for), 3 seeds, trained as one population (population=3: each member is the single run of its seed); the algorithm's uniform warm-up included"
-machine: "a lent $machine, device=$DEVICE (captured updates where the algorithm has them), $JOBS populations side by side on the one GPU, torch_threads=2"
+machine: "a lent $machine, device=$DEVICE (captured updates where the algorithm has them), $JOBS population(s) at a time on the one GPU, torch_threads=2"
 command: "python -m walkers.train algo=$algo env=$env population=3 seed=0 total_steps=$STEPS device=$DEVICE torch_threads=2 progress=false 'job_key=\\"baseline/$algo/\${env.id}/{seed}\\"' 'tracking.run_name=\\"baseline-$algo-\${env.id}-s{seed}\\"' tracking.experiment=baseline_$algo${EXTRA:+ $EXTRA} (make baseline's keys; run by benchmarks/device_baselines.sh, one store per population)"
 commit: "$commit"
 date: $(date -u +%F)

@@ -7,6 +7,7 @@ machine (``benchmarks/device_venv.sh``), whose image has no registry to build fr
 from __future__ import annotations
 
 import pathlib
+import shutil
 import sysconfig
 import tomllib
 
@@ -17,9 +18,7 @@ def register(site: pathlib.Path) -> pathlib.Path:
     project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
     name, version = project["name"], project["version"]
     for stale in site.glob(f"{name}-*.dist-info"):  # an earlier registration, of any version
-        for f in stale.iterdir():
-            f.unlink()
-        stale.rmdir()
+        shutil.rmtree(stale)
     info = site / f"{name}-{version}.dist-info"
     info.mkdir()
     (info / "METADATA").write_text(f"Metadata-Version: 2.1\nName: {name}\nVersion: {version}\n")

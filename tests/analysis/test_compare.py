@@ -188,6 +188,11 @@ def test_verdict_follows_the_evidence():
     few = run([90, 95, 100], [1, 2, 3])
     assert "no reliable difference in final return" in few
     assert "smallest possible p is 0.1" in few
+    assert "(95% CIs)." in few
+    # One seed per arm has no CI: the ranking says so per arm and claims no CIs
+    single = run([100], [1])
+    assert "td3 100 (too few seeds for a CI), reinforce 1 (too few seeds for a CI)." in single
+    assert "CIs)" not in single
 
 
 def test_a_dataset_named_without_its_version_is_found_when_one_version_has_runs():

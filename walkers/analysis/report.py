@@ -161,7 +161,7 @@ def verdict(c: Comparison) -> str:
         f"On {c.env_id} ({budgets_text(c)}; seeds: {seed_counts}),"
         f" ranked by the IQM of {c.score}: "
         + ", ".join(f"{r.algo} {_interval(*r.iqm)}" for r in ranked)
-        + f" ({level} CIs)."
+        + (f" ({level} CIs)." if any(not math.isnan(r.iqm[1]) for r in ranked) else ".")
     ]
     pairs = [p if rank[p.a] < rank[p.b] else p.flipped() for p in c.pairs]
     for a, b in {(p.a, p.b): None for p in pairs}:

@@ -13,6 +13,14 @@ SIGTERM'd run still ending 3 minutes later; a study's KILLED writes failing "dat
 locked"). Inside :func:`shielded` the signal is only noted; it is raised as soon as the call is
 over. :class:`walkers.tracking.client.StoreClient` shields every call it makes.
 
+Nor may a stop be lost. The handler raises wherever the main thread is, and that can be a
+finalizer or a weakref callback run by the garbage collector (SQLAlchemy's, under MLflow):
+Python prints such a callback's exception ("Exception ignored in") and carries on, so the run
+trained on, deaf to further signals, until a supervisor's SIGKILL (seen: a run stopped by
+``timeout -s INT`` 11 s after its start). :func:`_keep_a_swallowed_stop`, Python's unraisable
+hook while walkers' handler is installed, notes such a stop instead, and the next shielded
+block (every training step and store call is one) raises it at its end.
+
 A Hydra config composition is the third place: a KeyboardInterrupt raised inside OmegaConf while
 it builds a node comes out as a ConfigCompositionException (OmegaConf wraps what its half-built
 node raises next), so a sweep's driver stopped between two jobs ended 1 and FAILED instead of 130
@@ -24,6 +32,7 @@ from __future__ import annotations
 
 import os
 import signal
+import sys
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -49,6 +58,10 @@ def stop_noted() -> bool:
     return _noted is not None
 
 
+class StopSignal(KeyboardInterrupt):
+    """The KeyboardInterrupt walkers raises for SIGINT and SIGTERM."""
+
+
 @contextmanager
 def shielded() -> Iterator[None]:
     """Run the block to its end whatever stop signal arrives; then raise it (KeyboardInterrupt).
@@ -66,7 +79,7 @@ def shielded() -> Iterator[None]:
         _depth -= 1
         if _depth == 0 and _noted is not None:
             reason, _noted = _noted, None
-            raise KeyboardInterrupt(reason)
+            raise StopSignal(reason)
 
 
 class ShieldedConfigLoader:
@@ -113,7 +126,7 @@ class _Stopping:
                 name = signal.Signals(signum).name
                 os.write(2, f"stopping ({name}): the step under way ends first\n".encode())
                 return
-            raise KeyboardInterrupt(f"signal {signum}")
+            raise StopSignal(f"signal {signum}")
         if not self.told:  # os.write: print() may be in progress in the interrupted frame
             self.told = True
             name = signal.Signals(signum).name
@@ -127,9 +140,33 @@ class _Stopping:
 _STOPPING = _Stopping()
 
 
+def _keep_a_swallowed_stop(unraisable) -> None:
+    """Python's unraisable hook under walkers' handler: a stop raised inside a finalizer or a
+    garbage-collection callback, which Python would print and drop, is noted to be raised at
+    the end of the next shielded block; anything else goes to the hook there was before."""
+    if isinstance(unraisable.exc_value, StopSignal):
+        note(str(unraisable.exc_value))
+        os.write(
+            2, b"stopping: the signal landed in a cleanup callback; the step under way ends first\n"
+        )
+        return
+    _hook_before(unraisable)
+
+
+_hook_before = sys.unraisablehook
+
+
+def _keep_swallowed_stops() -> None:
+    global _hook_before
+    if sys.unraisablehook is not _keep_a_swallowed_stop:
+        _hook_before = sys.unraisablehook
+        sys.unraisablehook = _keep_a_swallowed_stop
+
+
 def stop_cleanly_on_signals() -> None:
     """Ctrl-C and SIGTERM end this process as :class:`_Stopping` says, from now on (a multirun's
     driver and each job's worker process call it; a second call changes nothing)."""
+    _keep_swallowed_stops()
     if signal.getsignal(signal.SIGTERM) is _STOPPING:
         return
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -148,8 +185,11 @@ def stops_between_steps() -> Iterator[None]:
     if isinstance(before, _Stopping):
         yield
         return
+    hook_before = sys.unraisablehook
     signal.signal(signal.SIGINT, _Stopping())
+    _keep_swallowed_stops()
     try:
         yield
     finally:
         signal.signal(signal.SIGINT, before)
+        sys.unraisablehook = hook_before

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import os
 import signal
+import sys
 
 import pytest
 import sqlalchemy
@@ -42,10 +43,12 @@ class _SignalledWhileOpeningRuns(MlflowClient):
 def stop_handler():
     """walkers' SIGINT/SIGTERM handler in this process, put back as it was afterwards."""
     before = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    hook_before = sys.unraisablehook
     interrupts.stop_cleanly_on_signals()
     yield
     for sig, handler in before.items():
         signal.signal(sig, handler)
+    sys.unraisablehook = hook_before
     interrupts._STOPPING.stopping = interrupts._STOPPING.told = False
 
 
@@ -119,3 +122,26 @@ def test_a_signal_while_a_run_is_opened_ends_that_run_killed(store, tmp_path, st
     with pytest.raises(KeyboardInterrupt, match=f"signal {signal.SIGTERM}"):
         Tracker.reopen(client, run.info.run_id, tmp_path / "spool", resumed_training=True)
     assert MlflowClient(store["uri"]).get_run(run.info.run_id).info.status == "KILLED"
+
+
+class _SignalledWhileCollected:
+    """An object whose finalizer gets SIGTERM: its handler runs inside the finalizer, whose
+    exceptions Python prints ("Exception ignored in") and drops, as a SQLAlchemy weakref
+    callback run by the garbage collector did under MLflow."""
+
+    def __del__(self):
+        os.kill(os.getpid(), signal.SIGTERM)
+        for _ in range(100_000):  # the handler runs here, at the latest
+            pass
+
+
+def test_a_signal_inside_a_finalizer_is_not_lost_but_raised_after_the_next_shielded_block(
+    stop_handler,
+):
+    _SignalledWhileCollected()  # collected at once: the stop raised in its finalizer is dropped
+
+    assert interrupts.stop_noted()  # kept instead of printed
+    with pytest.raises(KeyboardInterrupt, match=f"signal {signal.SIGTERM}"):
+        with interrupts.shielded():
+            reached_the_end_of_the_block = True
+    assert reached_the_end_of_the_block

@@ -93,16 +93,16 @@ def test_a_population_job_killed_mid_round_reruns_to_every_seed_once(store):
         store,
         *OBVIOUS_TD3,
         "hydra.sweeper.seeds_as_population=true",
-        "total_steps=4000",
-        "checkpoint_every=500",
-        "eval_every=500",
+        "total_steps=2000",
+        "checkpoint_every=250",
+        "eval_every=250",
         "progress=false",
     )
     proc = spawn_cli(args, cwd=store["path"], new_session=True)
 
     def checkpointed_members() -> int:  # members past their second checkpoint, far from done
         marks = [r.data.tags.get(LOGGED_THROUGH_TAG) for r in job_runs(store)]
-        return sum(mark is not None and 1000 <= int(mark) < 3000 for mark in marks)
+        return sum(mark is not None and 500 <= int(mark) < 1500 for mark in marks)
 
     try:
         deadline = time.monotonic() + 240

@@ -6,7 +6,9 @@ The agent at its declared defaults (``conf/algo/dt.yaml``: context 20, embedding
 1 head, batch 64, dropout 0.1, AdamW), sampling from a synthetic dataset of Walker2d-v5 shapes
 (17-d observations, 6-d actions, 20 episodes of 1,000 steps): what ``algo=dt env=walker2d``
 runs per gradient step, the sampling of the batch included; beside it on each device the same
-agent with ``algo.precision=bf16`` (bfloat16 autocast) and one with torch's encoder for its blocks.
+agent with ``algo.precision=bf16`` (bfloat16 autocast) and one with torch's encoder for its blocks;
+with ``--compile`` also one whose model runs through ``torch.compile`` (a minute to compile, so
+off by default: the GPU session's part has 25 s).
 The contenders take turns, ``--steps`` gradient steps a round, and the table gives the median ms
 per step and the ratio to the first. A benchmark, not a test: nothing here asserts on time.
 """
@@ -80,6 +82,9 @@ def main():
     parser.add_argument("--devices", default="cpu", help="comma-separated, e.g. cpu,cuda")
     parser.add_argument("--reps", type=int, default=5, help="alternating rounds")
     parser.add_argument("--steps", type=int, default=20, help="gradient steps per round")
+    parser.add_argument(
+        "--compile", action="store_true", help="also the model through torch.compile"
+    )
     args = parser.parse_args()
     data = walker2d_shaped_data()
     hyperparameters = defaults_for(DecisionTransformer, max_episode_steps=STEPS)
@@ -101,6 +106,10 @@ def main():
         agents[f"torch TransformerEncoder on {device}"] = with_torch_encoder(
             agent(device), hyperparameters
         )
+        if args.compile:
+            compiled = agent(device)
+            compiled.model = torch.compile(compiled.model)  # the optimizer keeps its parameters
+            agents[f"walkers DT, model through torch.compile, on {device}"] = compiled
 
     def ms_per_step(agent) -> float:
         sync = torch.cuda.synchronize if agent.device.type == "cuda" else (lambda: None)

@@ -87,12 +87,16 @@ stack: $(STAMP)  ## PostgreSQL + an MLflow server on it for a team or a cluster,
 bench: $(STAMP)  ## benchmarks: the TD3 update vs a plain eager implementation, side by side
 	$(PY) benchmarks/bench_update.py $(ARGS)
 
+bench-population: $(STAMP)  ## what a population's lockstep step costs per member through walkers.train itself (TD3, Walker2d-v5, K = 1, 4, 16, warm-up phase), beside the bare env step, and where its host time goes (ARGS="--reps 3 --against ../main-before" pairs it with another checkout)
+	$(PY) benchmarks/bench_population.py --split $(ARGS)
+
 bench-throughput: $(STAMP)  ## env steps/s of walkers TD3/DDPG/SAC/CrossQ/PPO (1, 4, 8 envs)/REINFORCE vs Stable-Baselines3 (and sb3-contrib) on Walker2d
 	$(PY) benchmarks/bench_throughput.py $(ARGS)
 
 bench-gpu: $(STAMP)  ## the prepared script for a lent GPU, under 5 minutes: the TD3 update vs a plain one and by phase on CUDA, TD3/SAC/PPO throughput with populations of 1, 5 and 16, DT's step (each part under its own timeout)
 	timeout 90 $(PY) benchmarks/bench_update.py --device cuda --reps 3 --phases
 	timeout 180 $(PY) benchmarks/bench_throughput.py --device cuda --only "TD3,SAC,PPO" --population 1,5,16 --reps 2 --steps 200
+	timeout 240 $(PY) benchmarks/bench_population.py --device cuda --phase learning --populations 1,5,16 --reps 1 --steps 3000 --log-every 500 --split
 	timeout 30 $(PY) benchmarks/bench_dt.py --devices cuda --reps 2 --steps 10
 
 offline-gpu:  ## on a lent GPU: the offline study's arms, DT and TD3+BC seeds 0-2, on one dataset carried in .walkers/datasets (DATASET=walkers/walker2d/medium-v0), side by side, each algorithm's finished runs a bundle in $$OUT/bundles for walkers.ingest here (benchmarks/device_offline.sh; sets itself up from .whl/)
@@ -149,4 +153,4 @@ clean:  ## remove run outputs (mlflow.db, mlartifacts/, outputs/, multirun/, .wa
 	rm -rf mlflow.db mlruns mlartifacts outputs multirun .walkers reports .pytest_cache .ruff_cache
 	find . -name __pycache__ -type d -prune -not -path './$(VENV)/*' -exec rm -rf {} +
 
-.PHONY: help install train ab ab-all study baseline baselines-gpu offline-gpu offline compare plan results docs dashboard bench-sequential ui-check test test-slow test-faults test-cluster chaos stack bench bench-throughput bench-dt bench-learning bench-scale menus lint ui clean
+.PHONY: help install train ab ab-all study baseline baselines-gpu offline-gpu offline compare plan results docs dashboard bench-sequential ui-check test test-slow test-faults test-cluster chaos stack bench bench-population bench-throughput bench-dt bench-learning bench-scale menus lint ui clean

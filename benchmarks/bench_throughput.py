@@ -34,11 +34,9 @@ import time
 from functools import partial
 
 import gymnasium as gym
-import numpy as np
 import torch
 from rounds import alternate, print_table
 
-from walkers.agents.base import Transition
 from walkers.agents.crossq import CrossQ
 from walkers.agents.ddpg import DDPG
 from walkers.agents.factory import defaults_for
@@ -48,9 +46,11 @@ from walkers.agents.sac import SAC
 from walkers.agents.td3 import TD3
 from walkers.agents.td7 import TD7
 from walkers.data.replay import DATA_FIELDS, ReplayBuffer
-from walkers.training.envs import env_spaces, make_vector_env, step_vector_env
+from walkers.training.envs import env_spaces, make_env, make_vector_env
+from walkers.training.loops import Lockstep, online_step, vectorized_step
 
 ENV_ID, HIDDEN, BATCH, WARMUP = "Walker2d-v5", 256, 256, 1_000
+ENV_CFG = {"id": ENV_ID, "max_episode_steps": 1000}  # as conf/env/walker2d.yaml builds it
 PPO_ROLLOUT = 2048  # PPO's reference rollout: a PPO round is one rollout and its update
 PPO_ENVS = (4, 8)  # the walkers PPO rows with algo.num_envs envs acting as one batch
 PPO_ROWS = ("walkers PPO", *(f"walkers PPO {n} envs" for n in PPO_ENVS), "SB3 PPO")
@@ -61,50 +61,37 @@ DEVICE = "cpu"  # where every contender runs: set once by --device, before any i
 
 
 class WalkersLoop:
-    """The trainer's inner loop (act -> step -> observe -> update) around one walkers agent."""
+    """The trainer's single-run step (:func:`walkers.training.loops.online_step`: act, step,
+    observe, update) around one walkers agent, without the run's books."""
 
     def __init__(self, agent_cls, **kwargs):
-        self.env = gym.make(ENV_ID)
+        self.env = make_env(ENV_CFG)
         spaces = env_spaces(self.env)
         self.agent = agent_cls(**spaces, seed=0, device=DEVICE, **defaults_for(agent_cls, **kwargs))
         self.obs, _ = self.env.reset(seed=0)
+        self.losses: dict = {}
 
     def run(self, steps: int) -> None:
-        agent, env, obs = self.agent, self.env, self.obs
         for _ in range(steps):
-            action = agent.act(obs, explore=True)
-            next_obs, reward, terminated, truncated, _ = env.step(action)
-            agent.observe(Transition(obs, action, float(reward), next_obs, terminated, truncated))
-            agent.update()
-            obs = next_obs if not (terminated or truncated) else env.reset()[0]
-        self.obs = obs
+            self.obs, _ = online_step(self.agent, self.env, self.obs, self.losses)
 
 
 class PopulationLoop:
-    """The population loop (``population=K``): K envs, one batched update for all members."""
+    """The trainer's population step (``population=K``: :class:`walkers.training.loops.Lockstep`,
+    K envs as one vector env, one batched update for all members), without the runs' books."""
 
     def __init__(self, k: int, agent_cls=TD3, **kwargs):
-        self.envs = [gym.make(ENV_ID) for _ in range(k)]
-        spaces = env_spaces(self.envs[0])
+        envs = make_vector_env(ENV_CFG, k, step_info=False)
+        spaces = env_spaces(envs.envs[0])
         self.agent = agent_cls(
             **spaces, seed=0, population=k, device=DEVICE, **defaults_for(agent_cls, **kwargs)
         )
-        self.obs = np.stack([env.reset(seed=i)[0] for i, env in enumerate(self.envs)])
+        self.lockstep = Lockstep(self.agent, envs, envs.reset(seed=list(range(k)))[0])
         self.env_steps_per_step = k
 
     def run(self, steps: int) -> None:
-        agent, envs, obs = self.agent, self.envs, self.obs
         for _ in range(steps):
-            actions = agent.act_population(obs, explore=True)
-            transitions = []
-            for i, env in enumerate(envs):
-                next_obs, reward, terminated, truncated, _ = env.step(actions[i])
-                transitions.append(
-                    Transition(obs[i], actions[i], float(reward), next_obs, terminated, truncated)
-                )
-                obs[i] = next_obs if not (terminated or truncated) else env.reset()[0]
-            agent.observe_population(transitions)
-            agent.update()
+            self.lockstep.step()
 
 
 class ParallelLoops:
@@ -201,26 +188,23 @@ def walkers_ppo() -> WalkersLoop:
 
 
 class VectorPPOLoop:
-    """walkers' PPO with ``num_envs`` envs acting as one batch (walkers.training.loops'
-    train_vectorized: one vector env in this process, episodes reset in the step)."""
+    """walkers' PPO with ``num_envs`` envs acting as one batch (the trainer's
+    :func:`walkers.training.loops.vectorized_step`: one vector env in this process, episodes
+    reset in the step)."""
 
     round_steps = PPO_ROLLOUT
 
     def __init__(self, num_envs: int):
-        self.envs = make_vector_env({"id": ENV_ID, "max_episode_steps": 1000}, num_envs)
+        self.envs = make_vector_env(ENV_CFG, num_envs)
         spaces = env_spaces(self.envs.envs[0])
         hp = defaults_for(PPO, num_envs=num_envs, total_steps=1_000_000)
         self.agent = PPO(**spaces, seed=0, device=DEVICE, **hp)
         self.obs, _ = self.envs.reset(seed=0)
+        self.losses: dict = {}
 
     def run(self, steps: int) -> None:
-        agent, envs, n = self.agent, self.envs, self.envs.num_envs
-        for _ in range(steps // n):
-            actions = agent.act(self.obs, explore=True)
-            step = step_vector_env(envs, self.obs, actions)
-            agent.observe_batch(step.transitions)
-            agent.update()
-            self.obs = step.next_obs
+        for _ in range(steps // self.envs.num_envs):
+            self.obs = vectorized_step(self.agent, self.envs, self.obs, self.losses).next_obs
 
 
 class SB3PPOLoop:

@@ -7,7 +7,8 @@
 #
 # Parts, in this order (all by default, or name some: `bash benchmarks/device_session.sh capture
 # update`): capture (the captured update against the eager one, tests/agents/test_capture.py, and the
-# streams on CUDA), update (the TD3 update: plain, walkers eager, compiled, captured; and by
+# streams on CUDA), population (a TD3 population of 1, 5, 16 through walkers.train itself, learning
+# phase, and where its lockstep step's host time goes: benchmarks/bench_population.py), update (the TD3 update: plain, walkers eager, compiled, captured; and by
 # phase), throughput (TD3/SAC/PPO, captured too, populations 1/5/16), dt, envs (env stepping on
 # the machine's cores), tests (make test-gpu). Each part's log goes to $OUT (what comes back), a
 # line per part to $OUT/summary.txt, and the logs' ends are printed last.
@@ -16,7 +17,7 @@ set -uo pipefail
 export PYTHONUNBUFFERED=1 MUJOCO_GL=${MUJOCO_GL:-disable} PYTHONPATH=$PWD
 OUT=${OUT:-/tmp/device_session}
 mkdir -p "$OUT"
-parts=${*:-capture update throughput dt envs tests}
+parts=${*:-capture population update throughput dt envs tests}
 
 bash benchmarks/device_venv.sh > "$OUT/setup.log" 2>&1 || { tail -20 "$OUT/setup.log"; exit 1; }
 tail -1 "$OUT/setup.log"
@@ -31,6 +32,8 @@ part() {  # part NAME SECONDS COMMAND...
 }
 py=.venv/bin/python
 part capture 90 $py -m pytest -q -p no:cacheprovider tests/agents/test_capture.py tests/test_random_streams.py
+part population 150 $py benchmarks/bench_population.py --device cuda --phase learning \
+  --populations 1,5,16 --reps 1 --steps 3000 --log-every 500 --split
 part update 75 $py benchmarks/bench_update.py --device cuda --reps 3 --phases
 part throughput 130 $py benchmarks/bench_throughput.py --device cuda --only "TD3,SAC,TD7,PPO" \
   --population 1,5,16 --reps 2 --steps 200

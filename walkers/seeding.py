@@ -94,23 +94,36 @@ def first_training_reset(env: gym.Env, seed: int):
     return env.reset(seed=training_env_seed(seed))
 
 
-def env_rng_state(env: gym.Env | gym.vector.SyncVectorEnv) -> dict:
+def env_rng_state(env: gym.Env | gym.vector.VectorEnv, member: int | None = None) -> dict:
     """The training env's RNG state (what its next resets will draw), for a checkpoint; of a
-    vector env, each of its envs' (``{"envs": [...]}``)."""
-    if isinstance(env, gym.vector.SyncVectorEnv):
-        return {"envs": [env_rng_state(one) for one in env.envs]}
+    vector env, each of its envs' (``{"envs": [...]}``), or with ``member`` that one env's alone
+    (a population member's env, in this process or in a worker of its own)."""
+    if isinstance(env, gym.vector.VectorEnv):
+        states = [generator.bit_generator.state for generator in env.get_attr("np_random")]
+        return {"envs": states} if member is None else states[member]
     return env.unwrapped.np_random.bit_generator.state
 
 
-def restore_env_rng(env: gym.Env | gym.vector.SyncVectorEnv, state: dict) -> None:
-    """Continue the training env's RNG from a checkpoint (before its next, unseeded reset)."""
-    if isinstance(env, gym.vector.SyncVectorEnv):
-        for one, one_state in zip(env.envs, state["envs"], strict=True):
-            restore_env_rng(one, one_state)
+def restore_env_rng(
+    env: gym.Env | gym.vector.VectorEnv, state: dict, member: int | None = None
+) -> None:
+    """Continue the training env's RNG from a checkpoint (before its next, unseeded reset): a
+    vector env's envs from ``{"envs": [...]}``, or with ``member`` that one env from its own."""
+    if isinstance(env, gym.vector.VectorEnv):
+        generators = list(env.get_attr("np_random"))
+        if member is None:
+            generators = [_generator_at(one) for one in state["envs"]]
+        else:
+            generators[member] = _generator_at(state)
+        env.set_attr("np_random", generators)
         return
+    env.unwrapped.np_random = _generator_at(state)
+
+
+def _generator_at(state: dict) -> np.random.Generator:
     generator = np.random.Generator(getattr(np.random, state["bit_generator"])())
     generator.bit_generator.state = state
-    env.unwrapped.np_random = generator
+    return generator
 
 
 def torch_rng_state() -> dict:

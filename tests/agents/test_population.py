@@ -153,7 +153,10 @@ def test_a_member_trains_as_a_single_run_of_its_seed(store, algo):
     def history(run, metric):
         return [(m.step, m.value) for m in client.get_metric_history(run.info.run_id, metric)]
 
-    for metric in ("train/episode_return", "eval/return_mean"):
+    # the member's losses are its own column of the population's, read at the same log steps
+    losses = sorted(k for k in single.data.metrics if k.startswith("loss/"))
+    assert losses and losses == sorted(k for k in member.data.metrics if k.startswith("loss/"))
+    for metric in ("train/episode_return", "eval/return_mean", *losses):
         got, alone = history(member, metric), history(single, metric)
         assert [step for step, _ in got] == [step for step, _ in alone] and got
         np.testing.assert_allclose([v for _, v in got], [v for _, v in alone], rtol=1e-4)

@@ -101,7 +101,7 @@ class TD3BC(TD3):
         """pi of the normalized states; ``explore`` is ignored (offline, nothing explores)."""
         return super().act_population(self.normalize(obs), explore=False)
 
-    def observe_population(self, transitions) -> None:
+    def store_steps(self, *steps) -> None:
         """Offline: the agent learns from its dataset and is never shown a step."""
         raise NotImplementedError("TD3BC learns offline: it observes nothing")
 

@@ -34,6 +34,7 @@ NOT_THE_EXPERIMENT = (
     "tracking.",  # where the run is logged
     "work_dir",  # local scratch
     "torch_threads",  # speed only
+    "vector_env",  # where the training envs step: the same envs, the same numbers
     "device",  # for CPU runs only (see arm_config): an accelerator's run stays its own arm
     "trial.",  # Optuna plumbing (study, trial id, parent run); a pruned trial is left out anyway
     "job_key",  # a multirun job's identity across attempts (walkers.train), one value per job

@@ -15,7 +15,7 @@ import dataclasses
 import logging
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
 import gymnasium as gym
@@ -55,7 +55,8 @@ class Progress:
 class RunBook:
     """The bookkeeping of one run (see the module docstring): its ``settings`` say the budget,
     the schedules of evaluations, checkpoints, logs and videos, the seed and the divergence
-    patience; ``threshold`` is the env's return for ``final/steps_to_threshold``;
+    patience; ``threshold`` is the env's return for ``final/steps_to_threshold``; ``env_member``:
+    a population member's place in the vector env ``env`` of all members' training envs;
     ``on_evaluation`` (a sweep trial's pruner, ``(step, eval mean) -> stop?``) adds pruning to
     the services."""
 
@@ -73,11 +74,16 @@ class RunBook:
         evaluation: Evaluation = greedy_evaluation,
         axis: Axis = ENV_STEP_AXIS,
         summarize: Callable[[dict[str, float]], dict[str, float]] | None = None,
+        env_member: int | None = None,
     ):
         self.agent, self.env, self.eval_env, self.video_env = agent, env, eval_env, video_env
+        # a population member's env is env_member of the population's vector env ``env``
+        self.env_member = env_member
         self.run, self.settings, self.threshold, self.axis = run, settings, threshold, axis
         self.checkpoint_extra = checkpoint_extra or {}  # e.g. the composed config
         self.services: list[RunService] = chosen_services(settings, on_evaluation)
+        # the steps any service may have work at are multiples of these (or the last)
+        self._periods = sorted({service.every(settings) for service in self.services})
         self.evaluation = evaluation
         self.summarize = summarize or (lambda summary: summary)  # extra final/* metrics
         self.stopped_early = False
@@ -101,7 +107,7 @@ class RunBook:
         state = {
             "trainer": dataclasses.asdict(self.progress),
             **torch_rng_state(),
-            "env_rng": env_rng_state(self.env) if self.env is not None else None,
+            "env_rng": env_rng_state(self.env, self.env_member) if self.env is not None else None,
             **self.checkpoint_extra,
         }
         whole = None
@@ -131,17 +137,18 @@ class RunBook:
         loop that resets the env itself, e.g. SB3's)."""
         if self.pending_env_rng is None:
             return training_env_seed(self.settings.seed)
-        restore_env_rng(self.env, self.pending_env_rng)
+        restore_env_rng(self.env, self.pending_env_rng, self.env_member)
         self.pending_env_rng = None
         return None
 
-    def record_episode(self, info: dict) -> None:
-        """A training episode ended at the current step: count it, log its true return."""
+    def record_episode(self, episode_return: float, episode_length: int) -> None:
+        """A training episode ended at the current step: count it, log its true return (the
+        env's own, recorded before any reward shaping: ``info["episode"]``)."""
         p = self.progress
         p.episodes += 1
-        episode = info["episode"]  # recorded before any reward shaping
         self.run.log_metrics(
-            {"train/episode_return": episode["r"], "train/episode_length": episode["l"]}, p.step
+            {"train/episode_return": episode_return, "train/episode_length": episode_length},
+            p.step,
         )
 
     # --- after every step ---------------------------------------------------------------------
@@ -161,9 +168,18 @@ class RunBook:
         self._cpu_mark = now
         return self.progress.cpu_seconds / 3600
 
-    def after_step(self, losses: dict[str, torch.Tensor]) -> bool:
-        """Each service in turn does what is due at the current step; True when one stops the
-        run (the services after it are skipped)."""
+    def due(self) -> bool:
+        """Whether any service may have work at the current step (a step of most runs has none:
+        then :meth:`after_step` is a few integer checks)."""
+        step = self.progress.step
+        return step == self.settings.total_steps or any(step % n == 0 for n in self._periods)
+
+    def after_step(self, losses: Mapping[str, torch.Tensor | float]) -> bool:
+        """Each service in turn does what is due at the current step (``losses``: the step's
+        scalars, tensors or floats); True when one stops the run (the services after it are
+        skipped)."""
+        if not self.due():
+            return False
         return any(service.after_step(self, losses) for service in self.services)
 
     # --- the end ------------------------------------------------------------------------------

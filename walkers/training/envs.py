@@ -7,11 +7,14 @@ environment's own return. Evaluation envs get no shaping at all.
 
 from __future__ import annotations
 
+import functools
 import logging
+import os
 from typing import NamedTuple
 
 import gymnasium as gym
 import numpy as np
+from omegaconf import OmegaConf
 
 from walkers.agents.base import Transition
 from walkers.errors import ConfigError
@@ -67,28 +70,103 @@ def make_env(env_cfg, *, shaping: bool = True, render_mode: str | None = None) -
     return env
 
 
-def make_vector_env(env_cfg, num_envs: int) -> gym.vector.SyncVectorEnv:
-    """``num_envs`` training envs (:func:`make_env`) stepped together in this process, a finished
-    episode reset in the same step (its last observation in ``info["final_obs"]``, its
-    statistics in ``info["final_info"]``). Reset with ``seed=s``, env ``i`` starts from seed
-    ``s + i`` (Gymnasium's rule), so env 0 starts as a single-env run of the same seed does.
+class EpisodeStatisticsOnly(gym.Wrapper):
+    """A step's info cut down to the episode's statistics (``RecordEpisodeStatistics``', at its
+    last step), the only entry a training loop reads: a vector env merges every key of every
+    env's info into arrays at every step, which for MuJoCo's per-step diagnostics (positions,
+    velocities, reward terms) cost about as much as the rest of the loop."""
 
-    In-process by measurement (``make bench-envs``): on 2 cores, AsyncVectorEnv's worker
-    processes stepped Walker2d-v5 at 0.38x one env alone, their messages costing more than the
-    step; the gain of several envs is acting on them as one batch."""
+    def step(self, action):
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        return obs, reward, terminated, truncated, _episode_only(info)
+
+    def reset(self, **kwargs):
+        obs, info = self.env.reset(**kwargs)
+        return obs, _episode_only(info)
+
+
+def _episode_only(info: dict) -> dict:
+    return {"episode": info["episode"]} if "episode" in info else {}
+
+
+#: ``vector_env=auto`` steps envs in worker processes from this many envs on, given as many cores:
+#: on a 16-core machine 16 Walker2d-v5 envs stepped 2.5x faster so, 8 1.5x, 4 no faster; on 2
+#: cores the workers' messages cost more than the step (0.38x); docs/speed.md
+WORKERS_FROM = 8
+
+
+def steps_in_workers(vector_env: str, num_envs: int, cores: int | None = None) -> bool:
+    """Whether ``vector_env`` (``sync | async | auto``) steps ``num_envs`` envs in worker
+    processes on a machine of ``cores`` (this one's by default)."""
+    if vector_env != "auto":
+        return vector_env == "async"
+    return num_envs >= WORKERS_FROM and (cores or os.cpu_count() or 1) >= num_envs
+
+
+def make_vector_env(
+    env_cfg, num_envs: int, step_info: bool = True, workers: bool = False
+) -> gym.vector.VectorEnv:
+    """``num_envs`` training envs (:func:`make_env`) stepped together, a finished episode reset
+    in the same step (its last observation in ``info["final_obs"]``, its statistics in
+    ``info["final_info"]``): in this process, in turn (Gymnasium's ``SyncVectorEnv``), or with
+    ``workers`` a worker process each (``AsyncVectorEnv``: the same envs, the same numbers).
+    Reset with ``seed=s``, env ``i`` starts from seed ``s + i`` (Gymnasium's rule), so env 0
+    starts as a single-env run of the same seed does; ``seed=[s_0, s_1, ...]`` seeds each env
+    with its own (None: unseeded). ``step_info=False`` keeps only the episode statistics of each
+    env's info (:class:`EpisodeStatisticsOnly`).
+
+    In this process unless the machine has the cores (:func:`steps_in_workers`, by
+    measurement: ``make bench-envs``): on 2 cores, AsyncVectorEnv's worker processes stepped
+    Walker2d-v5 at 0.38x one env alone, their messages costing more than the step; there the
+    gain of several envs is acting on them as one batch."""
     same_step = gym.vector.AutoresetMode.SAME_STEP
-    return gym.vector.SyncVectorEnv(
-        [lambda: make_env(env_cfg)] * num_envs, autoreset_mode=same_step
-    )
+    env_cfg = OmegaConf.to_container(env_cfg) if OmegaConf.is_config(env_cfg) else env_cfg
+    one_env = functools.partial(_training_env, env_cfg, step_info)
+    if workers:
+        return gym.vector.AsyncVectorEnv([one_env] * num_envs, autoreset_mode=same_step)
+    return gym.vector.SyncVectorEnv([one_env] * num_envs, autoreset_mode=same_step)
+
+
+def _training_env(env_cfg, step_info: bool) -> gym.Env:
+    env = make_env(env_cfg)
+    return env if step_info else EpisodeStatisticsOnly(env)
 
 
 class VectorStep(NamedTuple):
-    """One step of every env of a vector env (:func:`step_vector_env`)."""
+    """One step of every env of a vector env (:func:`step_vector_env`), as ``(N, ...)`` arrays."""
 
+    obs: np.ndarray  # what each env was shown before the step
+    actions: np.ndarray
+    rewards: np.ndarray
+    own_next_obs: np.ndarray  # each env's own next observation: a finished episode's last one
+    terminated: np.ndarray
+    truncated: np.ndarray
     next_obs: np.ndarray  # what each env shows now: a finished episode's env already reset
-    transitions: list[Transition]  # each env's step, its own last observation where it ended
     info: dict
-    ended: np.ndarray  # the envs whose episode ended in the step
+    ended: np.ndarray  # the indices of the envs whose episode ended in the step
+
+    @property
+    def episode_over(self) -> np.ndarray:
+        return self.terminated | self.truncated
+
+    def transitions(self) -> list[Transition]:
+        """Each env's step as a :class:`Transition` (an agent that observes them one by one)."""
+        return [
+            Transition(
+                self.obs[i],
+                self.actions[i],
+                float(self.rewards[i]),
+                self.own_next_obs[i],
+                bool(self.terminated[i]),
+                bool(self.truncated[i]),
+            )  # fmt: skip
+            for i in range(len(self.rewards))
+        ]
+
+    def episode_statistics(self, i: int) -> tuple[float, int]:
+        """The true return and length of env ``i``'s episode, which ended in the step."""
+        episode = self.info["final_info"]["episode"]
+        return float(episode["r"][i]), int(episode["l"][i])
 
 
 def step_vector_env(envs: gym.vector.VectorEnv, obs: np.ndarray, actions) -> VectorStep:
@@ -96,21 +174,14 @@ def step_vector_env(envs: gym.vector.VectorEnv, obs: np.ndarray, actions) -> Vec
     from observations ``obs`` with ``actions``."""
     next_obs, rewards, terminated, truncated, info = envs.step(actions)
     ended = np.flatnonzero(terminated | truncated)
-    own_next_obs = next_obs.copy()  # a finished episode's own last observation, not the next
-    for i in ended:  # episode's first
-        own_next_obs[i] = info["final_obs"][i]
-    transitions = [
-        Transition(
-            obs[i],
-            actions[i],
-            float(rewards[i]),
-            own_next_obs[i],
-            bool(terminated[i]),
-            bool(truncated[i]),
-        )  # fmt: skip
-        for i in range(envs.num_envs)
-    ]
-    return VectorStep(next_obs, transitions, info, ended)
+    own_next_obs = next_obs
+    if len(ended):  # a finished episode's own last observation, not the next episode's first
+        own_next_obs = next_obs.copy()
+        for i in ended:
+            own_next_obs[i] = info["final_obs"][i]
+    return VectorStep(
+        obs, actions, rewards, own_next_obs, terminated, truncated, next_obs, info, ended
+    )
 
 
 def env_spaces(env: gym.Env) -> dict:

@@ -3,7 +3,7 @@ return-conditioned agent (the Decision Transformer), greedy episodes per target 
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import gymnasium as gym
@@ -11,7 +11,7 @@ import numpy as np
 
 from walkers.agents.base import Agent
 from walkers.metrics import normalized_score
-from walkers.training.greedy_episodes import run_episodes
+from walkers.training.greedy_episodes import run_episodes, run_population_episodes
 
 #: (agent, eval env, start seeds) -> (returns of the headline evaluation, extra metrics)
 Evaluation = Callable[[Agent, gym.Env, list[int]], tuple[np.ndarray, dict[str, float]]]
@@ -56,6 +56,30 @@ def offline_references(env_cfg, data) -> References:
 def greedy_evaluation(agent: Agent, env: gym.Env, start_seeds: list[int]):
     """Deterministic episodes, one per start seed."""
     return run_episodes(agent, env, start_seeds), {}
+
+
+class PopulationEvaluation:
+    """A population's evaluations, all K members' greedy episodes played together
+    (:func:`~walkers.training.greedy_episodes.run_population_episodes`), each member's book
+    reading its own: :meth:`of_member` is member i's :data:`Evaluation`. The first book to ask
+    at a step plays them; the others read what it played (the population's ``steps`` count says
+    which step that was)."""
+
+    def __init__(self, population, envs: Sequence[gym.Env], start_seeds: Sequence[Sequence[int]]):
+        self.population, self.envs, self.start_seeds = population, envs, start_seeds
+        self._played_at: int | None = None
+        self._returns: np.ndarray | None = None
+
+    def of_member(self, i: int) -> Evaluation:
+        def evaluate(agent, env: gym.Env, start_seeds: list[int]):
+            if self._played_at != self.population.steps:
+                self._returns = run_population_episodes(
+                    self.population, self.envs, self.start_seeds
+                )
+                self._played_at = self.population.steps
+            return self._returns[i], {}
+
+        return evaluate
 
 
 def per_target_return(normalize: Normalize) -> Evaluation:

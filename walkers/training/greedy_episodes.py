@@ -40,6 +40,32 @@ def run_episodes(
     return returns
 
 
+def run_population_episodes(
+    population, envs: Sequence[gym.Env], start_seeds: Sequence[Sequence[int]]
+) -> np.ndarray:
+    """``(K, episodes)`` returns of a population's K members' greedy episodes, member k's
+    episode j from ``envs[k].reset(seed=start_seeds[k][j])``, as :func:`run_episodes` plays
+    them one member at a time; here the K members' j-th episodes play together, one batched
+    greedy forward of all members a step (``act_population``: the forward their training acts
+    through), a member whose episode is over waiting for the others."""
+    k, episodes = len(envs), len(start_seeds[0])
+    returns = np.zeros((k, episodes))
+    for j in range(episodes):
+        starts = zip(envs, start_seeds, strict=True)
+        obs = np.stack([env.reset(seed=int(seeds[j]))[0] for env, seeds in starts])
+        playing = list(range(k))
+        while playing:
+            actions = population.act_population(obs, explore=False)
+            still = []
+            for i in playing:
+                obs[i], reward, terminated, truncated, _ = envs[i].step(actions[i])
+                returns[i, j] += reward
+                if not (terminated or truncated):
+                    still.append(i)
+            playing = still
+    return returns
+
+
 def record_episodes(
     agent: Agent, env: gym.Env, start_seeds: Sequence[int], render_episodes: int = 1
 ) -> tuple[np.ndarray, list[np.ndarray], float]:

@@ -4,7 +4,8 @@
     vectorized:  act on N envs as one batch -> step all -> observe all -> update ->
                  book.after_step once per env, in env order (PPO with num_envs > 1)
     offline:     update (a gradient step on the dataset) -> book.after_step
-    population:  act all -> step each env -> observe all -> one update -> each book.after_step
+    population:  act all -> step the K envs as one vector env -> store all -> one update ->
+                 the books, once for all K when anything is due (:class:`Lockstep`)
     sb3:         Stable-Baselines3's own learn() loop; its callback -> book.after_step
 
 Off-policy agents learn every step after their warm-up, on-policy ones when their batch is
@@ -37,7 +38,7 @@ from walkers.agents.common.actor_critic import ActorCritic
 from walkers.agents.sb3.twin import SB3Twin
 from walkers.interrupts import shielded, stop_noted, stops_between_steps
 from walkers.training.bookkeeping import RunBook
-from walkers.training.envs import step_vector_env
+from walkers.training.envs import VectorStep, step_vector_env
 
 
 def train_online(agent: Agent, env: gym.Env, book: RunBook) -> dict[str, float]:
@@ -49,22 +50,29 @@ def train_online(agent: Agent, env: gym.Env, book: RunBook) -> dict[str, float]:
         losses: dict[str, torch.Tensor] = {}
         while p.step < book.settings.total_steps:
             with shielded():
-                action = agent.act(obs, explore=True)
-                next_obs, reward, terminated, truncated, info = env.step(action)
-                agent.observe(
-                    Transition(obs, action, float(reward), next_obs, terminated, truncated)
-                )
-                losses.update(agent.update())
+                obs, episode = online_step(agent, env, obs, losses)
                 p.step += 1
-                obs = next_obs
-                if terminated or truncated:
-                    book.record_episode(info)
-                    obs, _ = env.reset()
+                if episode is not None:
+                    book.record_episode(*episode)
                 stop = _after_step(book, losses, bar)
             if stop:
                 return
 
     return _running([book], loop)[0]
+
+
+def online_step(agent: Agent, env: gym.Env, obs, losses: dict) -> tuple[np.ndarray, tuple | None]:
+    """One env step of a single run: act, step, observe, update (its losses into ``losses``);
+    the next observation (a new episode's first where one ended) and the ended episode's
+    ``(return, length)``, or None."""
+    action = agent.act(obs, explore=True)
+    next_obs, reward, terminated, truncated, info = env.step(action)
+    agent.observe(Transition(obs, action, float(reward), next_obs, terminated, truncated))
+    losses.update(agent.update())
+    if not (terminated or truncated):
+        return next_obs, None
+    episode = info["episode"]
+    return env.reset()[0], (episode["r"], episode["l"])
 
 
 def train_vectorized(
@@ -80,22 +88,25 @@ def train_vectorized(
         losses: dict[str, torch.Tensor] = {}
         while p.step < book.settings.total_steps:
             with shielded():
-                actions = agent.act(obs, explore=True)
-                step = step_vector_env(envs, obs, actions)
-                agent.observe_batch(step.transitions)
-                losses.update(agent.update())
-                obs, info, ended = step.next_obs, step.info, step.ended
+                step = vectorized_step(agent, envs, obs, losses)
+                obs = step.next_obs
                 for i in range(n):
                     p.step += 1
-                    if i in ended:
-                        episode = info["final_info"]["episode"]
-                        book.record_episode(
-                            {"episode": {"r": episode["r"][i], "l": episode["l"][i]}}
-                        )
+                    if i in step.ended:
+                        book.record_episode(*step.episode_statistics(i))
                     if _after_step(book, losses, bar):
                         return
 
     return _running([book], loop)[0]
+
+
+def vectorized_step(agent: Agent, envs: gym.vector.SyncVectorEnv, obs, losses: dict) -> VectorStep:
+    """One step of every env of a run on several envs: act on them as one batch, step, observe,
+    update (its losses into ``losses``)."""
+    step = step_vector_env(envs, obs, agent.act(obs, explore=True))
+    agent.observe_batch(step.transitions())
+    losses.update(agent.update())
+    return step
 
 
 def train_offline(agent: Agent, book: RunBook) -> dict[str, float]:
@@ -115,43 +126,76 @@ def train_offline(agent: Agent, book: RunBook) -> dict[str, float]:
 
 
 def train_population(
-    agent: ActorCritic, envs: Sequence[gym.Env], books: Sequence[RunBook]
+    agent: ActorCritic, envs: gym.vector.SyncVectorEnv, books: Sequence[RunBook]
 ) -> list[dict[str, float]]:
-    """K members in one agent, one env and one book each, in lockstep; one summary each (with
-    ``perf/population_sps``, the aggregate throughput)."""
-    p, settings = books[0].progress, books[0].settings  # the members share the step
+    """K members in one agent, their K envs one vector env, one book each, in lockstep; one
+    summary each (with ``perf/population_sps``, the aggregate throughput)."""
+    first = books[0]  # the members share the step, the budget and the schedules
 
     def loop(bar: tqdm) -> None:
-        obs = [book.first_reset()[0] for book in books]  # each seeded as a single run is
-        latest: dict[str, torch.Tensor] = {}
-        while p.step < settings.total_steps:
+        # each member's env seeded as a single run of its seed is (or its RNG restored)
+        obs, _ = envs.reset(seed=[book.first_reset_seed() for book in books])
+        lockstep = Lockstep(agent, envs, obs)
+        while first.progress.step < first.settings.total_steps:
             with shielded():
-                _population_step(agent, envs, books, obs, latest, bar)
+                step, losses = lockstep.step()
+                _population_books(books, step, losses, bar)
 
     return _running(books, loop, aggregate="perf/population_sps")
 
 
-def _population_step(agent, envs, books, obs, latest, bar) -> None:
-    """One lockstep step of a population: act, step each env, observe, update, each book."""
-    actions = agent.act_population(np.stack(obs), explore=True)
-    results = [env.step(action) for env, action in zip(envs, actions, strict=True)]
-    agent.observe_population(
-        [
-            Transition(obs[i], actions[i], reward, next_obs, terminated, truncated)
-            for i, (next_obs, reward, terminated, truncated, _) in enumerate(results)
-        ]
-    )
-    for i, (book, env, result) in enumerate(zip(books, envs, results, strict=True)):
-        next_obs, _, terminated, truncated, info = result
+class Lockstep:
+    """The population's step, arrays end to end: the K members act as one batch, their K envs
+    step as one vector env (finished episodes reset in the step), the K transitions go into the
+    replay buffer as ``(K, ...)`` arrays, and one update trains every member. The trainer and
+    ``benchmarks/bench_throughput.py`` both step through it."""
+
+    def __init__(self, agent: ActorCritic, envs: gym.vector.SyncVectorEnv, obs: np.ndarray):
+        self.agent, self.envs, self.obs = agent, envs, obs
+        self.latest: dict[str, torch.Tensor] = {}  # each metric's last value, ``(K,)``
+
+    def step(self) -> tuple[VectorStep, dict[str, torch.Tensor]]:
+        """One lockstep step: the envs' step and the latest value of every update metric."""
+        actions = self.agent.act_population(self.obs, explore=True)
+        step = step_vector_env(self.envs, self.obs, actions)
+        self.agent.store_steps(
+            step.obs,
+            step.actions,
+            step.rewards,
+            step.own_next_obs,
+            step.terminated,
+            step.episode_over,
+        )
+        self.obs = step.next_obs
+        self.latest.update(self.agent.update())
+        return step, self.latest
+
+
+def _population_books(books: Sequence[RunBook], step: VectorStep, losses, bar: tqdm) -> None:
+    """The K books after a lockstep step: the ended episodes recorded, each step counted, and
+    only when a service has work at this step (the members share the schedules), each book's
+    services, its losses read from the device in one transfer when they are logged."""
+    for book in books:
         book.progress.step += 1
-        obs[i] = next_obs
-        if terminated or truncated:
-            book.record_episode(info)
-            obs[i], _ = env.reset()
-    latest.update(agent.update())
-    logging = books[0].progress.step % books[0].settings.log_every == 0
-    for i, book in enumerate(books):  # losses are read only when they are logged
-        _after_step(book, {k: v[i] for k, v in latest.items()} if logging else {}, bar)
+    for i in step.ended:
+        books[i].record_episode(*step.episode_statistics(i))
+    first = books[0]
+    if first.due():
+        logging = first.progress.step % first.settings.log_every == 0
+        per_member = member_scalars(losses, len(books)) if logging else [{}] * len(books)
+        for book, scalars in zip(books, per_member, strict=True):
+            book.after_step(scalars)
+    _progress_bar(first, bar)
+
+
+def member_scalars(losses: dict[str, torch.Tensor], k: int) -> list[dict[str, float]]:
+    """Each member's value of every ``(K,)`` metric, as floats: one device-to-host transfer."""
+    if not losses:
+        return [{} for _ in range(k)]
+    names = list(losses)
+    stacked = torch.stack([losses[name].detach().float().reshape(k) for name in names])
+    columns = stacked.cpu().tolist()
+    return [dict(zip(names, values, strict=True)) for values in zip(*columns, strict=True)]
 
 
 def train_sb3(agent: SB3Twin, book: RunBook) -> dict[str, float]:
@@ -178,7 +222,7 @@ def train_sb3(agent: SB3Twin, book: RunBook) -> dict[str, float]:
             p.step = self.num_timesteps
             for done, info in zip(self.locals["dones"], self.locals["infos"], strict=True):
                 if done:
-                    book.record_episode(info)
+                    book.record_episode(info["episode"]["r"], info["episode"]["l"])
             losses = agent.latest_losses() if p.step % s.log_every == 0 else {}
             stop = _after_step(book, losses, self.bar) or stop_noted()
             # SB3's PPO would complete its rollout past the budget; its off-policy loop stores
@@ -198,12 +242,17 @@ def train_sb3(agent: SB3Twin, book: RunBook) -> dict[str, float]:
 
 def _after_step(book: RunBook, losses: dict[str, torch.Tensor], bar: tqdm) -> bool:
     stop = book.after_step(losses)
+    _progress_bar(book, bar)
+    return stop
+
+
+def _progress_bar(book: RunBook, bar: tqdm) -> None:
+    """After an evaluation the bar shows its return; every 100 steps it moves."""
     step = book.progress.step
     if step in book.progress.eval_steps[-1:]:
         bar.set_postfix(eval_return=f"{book.progress.eval_means[-1]:.1f}", refresh=False)
     if step % 100 == 0:
         bar.update(step - bar.n)
-    return stop
 
 
 def _running(

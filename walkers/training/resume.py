@@ -43,6 +43,7 @@ RESUME_OVERRIDABLE = (
     "total_steps",
     "device",
     "torch_threads",
+    "vector_env",
     "progress",
     "checkpoint_every",
     "log_every",

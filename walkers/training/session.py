@@ -21,10 +21,12 @@ from omegaconf import DictConfig, OmegaConf
 from walkers import tracking
 from walkers.agents.factory import build_agent
 from walkers.errors import ConfigError
+from walkers.seeding import eval_start_seeds
 from walkers.training import resume
 from walkers.training.bookkeeping import RunBook
-from walkers.training.envs import env_spaces, make_env, make_vector_env
+from walkers.training.envs import env_spaces, make_env, make_vector_env, steps_in_workers
 from walkers.training.evaluation import (
+    PopulationEvaluation,
     offline_evaluation,
     offline_references,
     with_normalized_score,
@@ -118,7 +120,11 @@ def _train_single(
         # the training env(s), as the agent declares it learns (offline: none)
         several_envs = agent.several_envs and agent.num_envs > 1
         if not agent.offline:
-            env = make_vector_env(cfg.env, agent.num_envs) if several_envs else make_env(cfg.env)
+            env = (
+                make_vector_env(cfg.env, agent.num_envs, workers=_workers(cfg, agent.num_envs))
+                if several_envs
+                else make_env(cfg.env)
+            )
         if cfg.video_every:
             video_env = make_env(cfg.env, shaping=False, render_mode="rgb_array")
         if agent.trains_itself:
@@ -170,11 +176,16 @@ def _train_population(
     members = (
         [member_config(cfg, i) for i in range(k)] if resumed is None else [m for m, _ in resumed]
     )
-    envs = [make_env(cfg.env) for _ in members]
+    # member i's env is env i of one vector env
+    envs = make_vector_env(cfg.env, k, step_info=False, workers=_workers(cfg, k))
     eval_envs = [make_env(cfg.env, shaping=False) for _ in members]
     runs: list[TrainingRun] = []
     try:
         agent = build_agent(cfg, env_spaces(eval_envs[0]), population=k)
+        # the members' evaluations play together, each from its own seed's start states
+        evaluation = PopulationEvaluation(
+            agent, eval_envs, [eval_start_seeds(m.seed, m.eval_episodes) for m in members]
+        )
         with ending(runs, population=True):
             for i, member in enumerate(members):
                 place = {POPULATION_TAG: str(k), MEMBER_TAG: str(i)}
@@ -182,7 +193,15 @@ def _train_population(
                     TrainingRun.open(client, member, ENV_STEP_AXIS, extra_tags=tags | place)
                 )
             books = [
-                _book(member, run, agent.member_policy(i), envs[i], eval_envs[i])
+                _book(
+                    member,
+                    run,
+                    agent.member_policy(i),
+                    envs,
+                    eval_envs[i],
+                    evaluation=evaluation.of_member(i),
+                    env_member=i,
+                )
                 for i, (member, run) in enumerate(zip(members, runs, strict=True))
             ]
             for book, (_, state) in zip(books, resumed or [], strict=False):
@@ -191,7 +210,7 @@ def _train_population(
                 log.info("resuming %d runs together at step %d", k, books[0].progress.step)
             return train_population(agent, envs, books)
     finally:
-        for e in envs + eval_envs:
+        for e in [envs, *eval_envs]:
             e.close()
 
 
@@ -209,6 +228,11 @@ def _book(cfg: DictConfig, run, agent, env, eval_env, axis=ENV_STEP_AXIS, video_
         axis=axis,
         **kw,
     )
+
+
+def _workers(cfg: DictConfig, num_envs: int) -> bool:
+    """Whether the run's ``num_envs`` training envs step in worker processes (``vector_env``)."""
+    return steps_in_workers(cfg.get("vector_env", "auto"), num_envs)
 
 
 def member_config(cfg: DictConfig, i: int) -> DictConfig:

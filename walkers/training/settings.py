@@ -44,6 +44,7 @@ from walkers.metrics import METRIC_DIRECTIONS
 OPTIMIZABLE_METRICS = tuple(METRIC_DIRECTIONS)  # every metric a sweep can optimize
 DEVICES = ("auto", "cpu", "cuda")
 IMPLEMENTATIONS = ("walkers", "sb3")
+VECTOR_ENVS = ("auto", "sync", "async")
 #: the algorithms that train seed populations: the replay-based actor-critics
 REPLAY_BASED = [name for name, schema in SCHEMAS.items() if issubclass(schema, Replay)]
 #: the algorithms that learn from a dataset (``dataset=``): their agent class says offline = True
@@ -75,6 +76,13 @@ class RunSettings:
         POSITIVE_INT,
         f"{'/'.join(REPLAY_BASED)}: train seeds seed..seed+K-1 together in one process (stacked "
         "networks), one MLflow run each",
+    )
+    vector_env: str = hp(
+        "auto",
+        _listed(VECTOR_ENVS),
+        "how a run's several training envs step (a population's K, PPO's algo.num_envs): sync (in "
+        "this process, in turn) | async (a worker process each) | auto (async for 8 or more envs "
+        "on at least as many cores, else sync: measured, docs/speed.md)",
     )
     total_steps: int = hp(1_000_000, POSITIVE_INT, "environment steps to train for")
     eval_every: int = hp(5_000, POSITIVE_INT, "env steps between evaluations")

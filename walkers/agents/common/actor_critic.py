@@ -104,6 +104,8 @@ class ActorCritic(Agent):
         self.action_low = np.asarray(action_low, dtype=np.float32)
         self.action_high = np.asarray(action_high, dtype=np.float32)
         self.act_dim = len(self.action_low)
+        self._uniform_low = self.action_low.astype(np.float64)  # uniform_actions' bounds
+        self._uniform_range = self.action_high.astype(np.float64) - self._uniform_low
         self.low_t = torch.as_tensor(self.action_low, device=self.device)
         self.high_t = torch.as_tensor(self.action_high, device=self.device)
         self.hidden_sizes = list(hidden_sizes)
@@ -242,25 +244,37 @@ class ActorCritic(Agent):
     def act_population(self, obs: np.ndarray, explore: bool) -> np.ndarray:
         """``(K, act_dim)`` actions for ``(K, obs_dim)`` observations."""
         if explore and self.steps < self.random_until:  # uniform random warm-up
-            uniform = [m.rng.uniform(self.action_low, self.action_high) for m in self.members]
-            return np.stack(uniform).astype(np.float32)
+            return self.uniform_actions()
         noise = np.stack([m.noise.sample() for m in self.members]) if explore else None
         with torch.no_grad():
             obs_t = torch.as_tensor(obs, dtype=torch.float32, device=self.device)
             return self.policy(obs_t.unsqueeze(1), noise)
+
+    def uniform_actions(self) -> np.ndarray:
+        """``(K, act_dim)`` uniform random actions, row k from member k's exploration stream:
+        the numbers ``rng.uniform(low, high)`` draws (low + (high - low) u, in float64, from the
+        same doubles u), without its per-call broadcasting of the bounds."""
+        u = np.stack([m.rng.random(self.act_dim) for m in self.members])
+        return (self._uniform_low + self._uniform_range * u).astype(np.float32)
 
     def policy(self, obs: torch.Tensor, noise: np.ndarray | None) -> np.ndarray:
         """``(K, act_dim)`` actions for ``(K, 1, obs_dim)`` observations; ``noise``: each
         member's exploration noise sample ``(K, act_dim)``, or None for the greedy policy."""
         raise NotImplementedError
 
-    def observe_population(self, transitions: Sequence[Transition]) -> None:
-        fields = ("obs", "action", "reward", "next_obs", "terminated", "episode_over")
-        self.buffer.add(*([getattr(t, f) for t in transitions] for f in fields))
-        for member, t in zip(self.members, transitions, strict=True):
-            if t.episode_over:
-                member.noise.reset()
+    def store_steps(self, obs, actions, rewards, next_obs, terminated, episode_over) -> None:
+        """One env step of every member, as ``(K, ...)`` arrays (``next_obs``: each member's own
+        next observation, a finished episode's last): into the replay buffer, and a new episode's
+        exploration noise for the members whose episode is over."""
+        self.buffer.add(obs, actions, rewards, next_obs, terminated, episode_over)
+        for i in np.flatnonzero(episode_over):
+            self.members[i].noise.reset()
         self.steps += 1
+
+    def observe_population(self, transitions: Sequence[Transition]) -> None:
+        """:meth:`store_steps` for one :class:`Transition` per member."""
+        fields = ("obs", "action", "reward", "next_obs", "terminated", "episode_over")
+        self.store_steps(*(np.array([getattr(t, f) for t in transitions]) for f in fields))
 
     def act(self, obs: np.ndarray, explore: bool) -> np.ndarray:
         return self.act_population(obs[None], explore)[0]

@@ -14,14 +14,17 @@ class TrainingDiverged(RuntimeError):
 
 
 class DivergenceWatch(RunService):
+    def every(self, settings) -> int:
+        return settings.log_every
+
     def after_step(self, book, losses) -> bool:
         step = book.progress.step
         if step % book.settings.log_every or SKIPPED_IN_A_ROW not in losses:
             return False
-        in_a_row = losses[SKIPPED_IN_A_ROW].item()
+        in_a_row = float(losses[SKIPPED_IN_A_ROW])
         if in_a_row < book.settings.divergence_patience:
             return False
-        named = ", ".join(f"{k}={v.item()}" for k, v in losses.items() if k.startswith("loss/"))
+        named = ", ".join(f"{k}={float(v)}" for k, v in losses.items() if k.startswith("loss/"))
         kept = (
             f"checkpoints/last.pt (step {book.last_checkpoint_step}) is the last good one"
             if book.last_checkpoint_step is not None

@@ -12,6 +12,9 @@ class Evaluations(RunService):
     """The book's evaluation (greedy episodes, or an offline run's normalized score): ``eval/*``
     logged, ``best.pt`` on a new best, and a flush, so the curves move in the UI."""
 
+    def every(self, settings) -> int:
+        return settings.eval_every
+
     def after_step(self, book, losses) -> bool:
         p, s = book.progress, book.settings
         if p.step % s.eval_every == 0 or p.step == s.total_steps:
@@ -34,6 +37,9 @@ class Pruning(RunService):
 
     def __init__(self, on_evaluation: Callable[[int, float], bool]):
         self.on_evaluation = on_evaluation
+
+    def every(self, settings) -> int:
+        return settings.eval_every
 
     def after_step(self, book, losses) -> bool:
         p = book.progress

@@ -10,6 +10,9 @@ CPU_HOURS = "perf/cpu_hours"
 
 
 class MetricsLog(RunService):
+    def every(self, settings) -> int:
+        return settings.log_every
+
     def start(self, book, now: float) -> None:
         self._step, self._time = book.progress.step, now
 
@@ -20,7 +23,7 @@ class MetricsLog(RunService):
         now = time.perf_counter()
         rate = (step - self._step) / (now - self._time)
         self._step, self._time = step, now
-        scalars = {key: value.item() for key, value in losses.items()}
+        scalars = {key: float(value) for key, value in losses.items()}  # tensors or floats
         book.run.log_metrics(
             {book.axis.rate_metric: rate, CPU_HOURS: book.cpu_hours(), **scalars}, step
         )

@@ -7,6 +7,9 @@ from walkers.training.services.base import RunService
 
 
 class PeriodicCheckpoints(RunService):
+    def every(self, settings) -> int:
+        return settings.checkpoint_every
+
     def after_step(self, book, losses) -> bool:
         p, s = book.progress, book.settings
         if p.step % s.checkpoint_every == 0 and p.step < s.total_steps:

@@ -13,11 +13,14 @@ TRAINING_GIF_FRAMES = 500
 
 class Videos(RunService):
     def __init__(self, every: int):
-        self.every = every
+        self.period = every
+
+    def every(self, settings) -> int:
+        return self.period
 
     def after_step(self, book, losses) -> bool:
         step = book.progress.step
-        if step % self.every == 0:
+        if step % self.period == 0:
             _, frames, fps = record_episodes(book.agent, book.video_env, book.eval_start_seeds[:1])
             path = book.run.folder.video(step)
             path.parent.mkdir(parents=True, exist_ok=True)

@@ -31,4 +31,4 @@ def test_videos_and_pruning_come_when_asked_for_before_the_checkpoints():
     assert names(services)[-3:] == ["Pruning", "Videos", "PeriodicCheckpoints"]
     pruning, videos = services[-3], services[-2]
     assert isinstance(pruning, Pruning) and pruning.on_evaluation is stop_at_once
-    assert isinstance(videos, Videos) and videos.every == 500
+    assert isinstance(videos, Videos) and videos.every(RunSettings()) == 500

@@ -93,7 +93,7 @@ bench-population: $(STAMP)  ## what a population's lockstep step costs per membe
 bench-throughput: $(STAMP)  ## env steps/s of walkers TD3/DDPG/SAC/CrossQ/PPO (1, 4, 8 envs)/REINFORCE vs Stable-Baselines3 (and sb3-contrib) on Walker2d
 	$(PY) benchmarks/bench_throughput.py $(ARGS)
 
-bench-gpu: $(STAMP)  ## the prepared script for a lent GPU, under 5 minutes: the TD3 update vs a plain one and by phase on CUDA, TD3/SAC/PPO throughput with populations of 1, 5 and 16, DT's step (each part under its own timeout)
+bench-gpu: $(STAMP)  ## the prepared script for a GPU machine, under 9 minutes: the TD3 update vs a plain one and by phase on CUDA, TD3/SAC/PPO throughput with populations of 1, 5 and 16, a TD3 population through walkers.train itself (bench_population), DT's step (each part under its own timeout)
 	timeout 90 $(PY) benchmarks/bench_update.py --device cuda --reps 3 --phases
 	timeout 180 $(PY) benchmarks/bench_throughput.py --device cuda --only "TD3,SAC,PPO" --population 1,5,16 --reps 2 --steps 200
 	timeout 240 $(PY) benchmarks/bench_population.py --device cuda --phase learning --populations 1,5,16 --reps 1 --steps 3000 --log-every 500 --split

@@ -280,7 +280,8 @@ class ActorCritic(Agent):
         return self.act_population(obs[None], explore)[0]
 
     def observe(self, t: Transition) -> None:
-        self.observe_population([t])
+        """A single agent's step: its fields broadcast as the one member's row."""
+        self.store_steps(t.obs, t.action, t.reward, t.next_obs, t.terminated, t.episode_over)
 
     # --- learning: what every update shares -------------------------------------------------
     def update(self) -> dict[str, torch.Tensor]:

@@ -122,8 +122,11 @@ def make_vector_env(
     same_step = gym.vector.AutoresetMode.SAME_STEP
     env_cfg = OmegaConf.to_container(env_cfg) if OmegaConf.is_config(env_cfg) else env_cfg
     one_env = functools.partial(_training_env, env_cfg, step_info)
-    if workers:
-        return gym.vector.AsyncVectorEnv([one_env] * num_envs, autoreset_mode=same_step)
+    if workers:  # forkserver: workers forked from a clean process, never from one holding
+        # CUDA or torch's threads (a multirun's second job runs in the first one's process)
+        return gym.vector.AsyncVectorEnv(
+            [one_env] * num_envs, autoreset_mode=same_step, context="forkserver"
+        )
     return gym.vector.SyncVectorEnv([one_env] * num_envs, autoreset_mode=same_step)
 
 

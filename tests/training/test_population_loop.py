@@ -3,11 +3,23 @@ a step, the members' evaluations played together (walkers.training.loops.Lockste
 
 from __future__ import annotations
 
+import os
+import signal
+
 import numpy as np
 import pytest
 from hydra.utils import get_class
 
-from tests.conftest import TINY, all_runs, compose_cfg, feed_members, tiny
+from tests.conftest import (
+    TINY,
+    all_runs,
+    compose_cfg,
+    feed_members,
+    run_cli,
+    spawn_cli,
+    tiny,
+    wait_for_uploaded_checkpoint,
+)
 from walkers.agents.declarations.schemas import SCHEMAS
 from walkers.agents.factory import defaults_for
 from walkers.seeding import eval_start_seeds
@@ -145,3 +157,27 @@ def test_members_envs_in_worker_processes_train_and_resume_as_in_this_process(st
         assert client.get_run(mine).info.status == "FINISHED"
         got, expected = histories(mine), histories(theirs)
         assert got == expected and [s for s, _ in got["eval/return_mean"]] == [300, 600]
+
+
+@pytest.mark.faults  # `make test-faults`: Ctrl-C to a whole process group
+def test_ctrl_c_to_the_process_group_leaves_the_env_workers_to_the_run(store):
+    """A terminal's Ctrl-C reaches every process of its group, the env workers of
+    ``vector_env=async`` too: they leave it to the training process, which ends its step, writes
+    each member's last checkpoint (their env RNGs read through the workers) and ends KILLED;
+    the resume it prints continues both members to their budget."""
+    args = ["algo=td3", "env=pendulum", "population=2", "vector_env=async", *TINY,
+            "total_steps=3000", *tiny("td3"), *store["overrides"]]  # fmt: skip
+    proc = spawn_cli(args, cwd=store["path"], new_session=True)
+    try:
+        wait_for_uploaded_checkpoint(proc, store["path"], "last.pt")
+        os.killpg(proc.pid, signal.SIGINT)
+        _, stderr = proc.communicate(timeout=180)
+    finally:
+        proc.kill()
+    assert proc.returncode == 130, stderr[-3000:]
+    runs = all_runs(store["client"])
+    assert len(runs) == 2 and {r.info.status for r in runs} == {"KILLED"}
+    ids = ",".join(r.info.run_id for r in sorted(runs, key=lambda r: r.data.params["seed"]))
+    again = run_cli([f"resume=[{ids}]", *store["overrides"]], cwd=store["path"])
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert {r.info.status for r in all_runs(store["client"])} == {"FINISHED"}

@@ -10,6 +10,7 @@ from __future__ import annotations
 import functools
 import logging
 import os
+import signal
 from typing import NamedTuple
 
 import gymnasium as gym
@@ -124,8 +125,9 @@ def make_vector_env(
     one_env = functools.partial(_training_env, env_cfg, step_info)
     if workers:  # forkserver: workers forked from a clean process, never from one holding
         # CUDA or torch's threads (a multirun's second job runs in the first one's process)
+        in_worker = functools.partial(_worker_env, one_env)
         return gym.vector.AsyncVectorEnv(
-            [one_env] * num_envs, autoreset_mode=same_step, context="forkserver"
+            [in_worker] * num_envs, autoreset_mode=same_step, context="forkserver"
         )
     return gym.vector.SyncVectorEnv([one_env] * num_envs, autoreset_mode=same_step)
 
@@ -133,6 +135,16 @@ def make_vector_env(
 def _training_env(env_cfg, step_info: bool) -> gym.Env:
     env = make_env(env_cfg)
     return env if step_info else EpisodeStatisticsOnly(env)
+
+
+def _worker_env(make) -> gym.Env:
+    """An env built in its worker process, which leaves Ctrl-C and SIGTERM to the training
+    process: a signal to the whole process group (a terminal's Ctrl-C, ``kill -TERM -<pgid>``)
+    must stop the run at its step's end and write its last checkpoint, which reads the workers'
+    env RNGs, not kill the workers under it (the training process closes them)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    return make()
 
 
 class VectorStep(NamedTuple):

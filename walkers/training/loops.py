@@ -100,7 +100,7 @@ def train_vectorized(
     return _running([book], loop)[0]
 
 
-def vectorized_step(agent: Agent, envs: gym.vector.SyncVectorEnv, obs, losses: dict) -> VectorStep:
+def vectorized_step(agent: Agent, envs: gym.vector.VectorEnv, obs, losses: dict) -> VectorStep:
     """One step of every env of a run on several envs: act on them as one batch, step, observe,
     update (its losses into ``losses``)."""
     step = step_vector_env(envs, obs, agent.act(obs, explore=True))
@@ -126,7 +126,7 @@ def train_offline(agent: Agent, book: RunBook) -> dict[str, float]:
 
 
 def train_population(
-    agent: ActorCritic, envs: gym.vector.SyncVectorEnv, books: Sequence[RunBook]
+    agent: ActorCritic, envs: gym.vector.VectorEnv, books: Sequence[RunBook]
 ) -> list[dict[str, float]]:
     """K members in one agent, their K envs one vector env, one book each, in lockstep; one
     summary each (with ``perf/population_sps``, the aggregate throughput)."""
@@ -150,7 +150,7 @@ class Lockstep:
     replay buffer as ``(K, ...)`` arrays, and one update trains every member. The trainer and
     ``benchmarks/bench_throughput.py`` both step through it."""
 
-    def __init__(self, agent: ActorCritic, envs: gym.vector.SyncVectorEnv, obs: np.ndarray):
+    def __init__(self, agent: ActorCritic, envs: gym.vector.VectorEnv, obs: np.ndarray):
         self.agent, self.envs, self.obs = agent, envs, obs
         self.latest: dict[str, torch.Tensor] = {}  # each metric's last value, ``(K,)``
 

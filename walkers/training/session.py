@@ -176,11 +176,11 @@ def _train_population(
     members = (
         [member_config(cfg, i) for i in range(k)] if resumed is None else [m for m, _ in resumed]
     )
-    # member i's env is env i of one vector env
-    envs = make_vector_env(cfg.env, k, step_info=False, workers=_workers(cfg, k))
-    eval_envs = [make_env(cfg.env, shaping=False) for _ in members]
-    runs: list[TrainingRun] = []
+    envs, eval_envs, runs = None, [], []
     try:
+        # member i's env is env i of one vector env
+        envs = make_vector_env(cfg.env, k, step_info=False, workers=_workers(cfg, k))
+        eval_envs = [make_env(cfg.env, shaping=False) for _ in members]
         agent = build_agent(cfg, env_spaces(eval_envs[0]), population=k)
         # the members' evaluations play together, each from its own seed's start states
         evaluation = PopulationEvaluation(
@@ -211,7 +211,8 @@ def _train_population(
             return train_population(agent, envs, books)
     finally:
         for e in [envs, *eval_envs]:
-            e.close()
+            if e is not None:
+                e.close()
 
 
 def _book(cfg: DictConfig, run, agent, env, eval_env, axis=ENV_STEP_AXIS, video_env=None, **kw):

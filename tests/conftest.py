@@ -181,22 +181,27 @@ def signal_once_checkpointed(
     return proc.returncode, stdout, stderr
 
 
-#: ``python -c`` this, then a signal's number, N, and walkers.train's arguments: the process
-#: sends itself the signal right after its Nth Adam step, so that it lands inside an update.
-_SIGNAL_AFTER_AN_ADAM_STEP = """
-import os, runpy, sys
-import torch
-sig, at, calls = int(sys.argv[1]), int(sys.argv[2]), 0
-adam_step = torch.optim.Adam.step
-def step(self, *args, **kwargs):
+#: ``python -c`` this, then a signal's number, N, a callable (``module:Class.attr``) and
+#: walkers.train's arguments: the process sends itself the signal right after its Nth call of
+#: that callable (an Adam step: the signal lands inside an update).
+_SIGNAL_AFTER_A_CALL = """
+import importlib, os, runpy, sys
+sig, at, where, calls = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3], 0
+module, path = where.split(":")
+*owners, name = path.split(".")
+owner = importlib.import_module(module)
+for part in owners:
+    owner = getattr(owner, part)
+called = getattr(owner, name)
+def call(*args, **kwargs):
     global calls
-    out = adam_step(self, *args, **kwargs)
+    out = called(*args, **kwargs)
     calls += 1
     if calls == at:
         os.kill(os.getpid(), sig)
     return out
-torch.optim.Adam.step = step
-sys.argv = ["walkers.train", *sys.argv[3:]]
+setattr(owner, name, call)
+sys.argv = ["walkers.train", *sys.argv[4:]]
 runpy.run_module("walkers.train", run_name="__main__")
 """
 
@@ -221,8 +226,18 @@ def run_cli_signalled_inside_an_update(
 ) -> subprocess.CompletedProcess:
     """``python -m walkers.train ARGS`` that receives ``sig`` (a real one, SIGINT by default)
     from itself right after its ``after_adam_steps``-th optimizer step."""
+    return run_cli_signalled_after(
+        args, cwd, "torch.optim:Adam.step", after_adam_steps, sig, env_overrides
+    )
+
+
+def run_cli_signalled_after(
+    args: list[str], cwd: Path, where: str, calls: int, sig: int = 2, env_overrides=None
+) -> subprocess.CompletedProcess:
+    """``python -m walkers.train ARGS`` that receives ``sig`` (a real one, SIGINT by default)
+    from itself right after its ``calls``-th call of ``where`` (``module:Class.attr``)."""
     return subprocess.run(
-        [sys.executable, "-c", _SIGNAL_AFTER_AN_ADAM_STEP, str(sig), str(after_adam_steps), *args],
+        [sys.executable, "-c", _SIGNAL_AFTER_A_CALL, str(sig), str(calls), where, *args],
         cwd=cwd,
         env={**os.environ, **(env_overrides or {})},
         capture_output=True,

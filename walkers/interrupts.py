@@ -62,6 +62,11 @@ class StopSignal(KeyboardInterrupt):
     """The KeyboardInterrupt walkers raises for SIGINT and SIGTERM."""
 
 
+class RunsStopped(KeyboardInterrupt):
+    """A stop that ended runs: its message says which, and how they continue (the command's
+    last line)."""
+
+
 @contextmanager
 def shielded() -> Iterator[None]:
     """Run the block to its end whatever stop signal arrives; then raise it (KeyboardInterrupt).

@@ -23,7 +23,7 @@ from omegaconf import DictConfig
 from walkers import CONF_DIR
 from walkers.cli import exit_on_bad_overrides, renamed_overrides
 from walkers.errors import CheckpointError, ConfigError
-from walkers.interrupts import stop_cleanly_on_signals
+from walkers.interrupts import RunsStopped, stop_cleanly_on_signals
 from walkers.tracking.names import MULTIRUN_JOB_TAG
 
 __all__ = ["main", "train"]
@@ -102,8 +102,11 @@ def main(cfg: DictConfig) -> float:
             print(f"error: {e}; MLflow run marked FAILED", file=sys.stderr)
             return math.nan  # the sweeper scores a diverged trial as the worst one so far
         fail(f"error: {e}; MLflow run marked FAILED", 3)
+    except RunsStopped as e:  # it says which runs it ended, and how they continue
+        print(f"interrupted: {e}", file=sys.stderr)
+        sys.exit(130)
     except KeyboardInterrupt:
-        print("interrupted: last checkpoint saved, MLflow run marked KILLED", file=sys.stderr)
+        print("interrupted: before a run started: nothing to continue", file=sys.stderr)
         sys.exit(130)
 
 

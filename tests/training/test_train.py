@@ -56,7 +56,9 @@ def test_tiny_td3_run_is_fully_logged(store, env, budget):
 
 def test_same_seed_same_evaluations_on_cpu(store):
     overrides = ["env=pendulum", "seed=7", "algo.learning_starts=200", *TINY, *store["overrides"]]
-    first, second = train(compose_cfg(overrides)), train(compose_cfg(overrides))
+    first = train(compose_cfg(overrides))
+    # the same command again would train nothing (its run FINISHED): a run of another name
+    second = train(compose_cfg([*overrides, "tracking.run_name=again"]))
     assert first == second
     runs = all_runs(store["client"])
     histories = [

@@ -47,7 +47,7 @@ from walkers.analysis.sequential import A_BETTER, B_BETTER, EQUAL, Design, equal
 from walkers.cli import one_line_hydra_error
 from walkers.errors import ConfigError
 from walkers.training.provenance import DIVERGED_TAG, shareable
-from walkers.training.run import SEED_IN_KEY
+from walkers.training.resume import SEED_IN_KEY
 from walkers.training.validate import validate
 from walkers.tuning.study_runs import end_jobs_runs
 

@@ -4,9 +4,10 @@ A loop only acts, steps, observes and updates (:mod:`walkers.training.loops`); a
 hands the :class:`RunBook` the step's losses, and the book has its run's services do what is due
 (:mod:`walkers.training.services`: metric logging, the divergence check, evaluations, pruning,
 videos, periodic checkpoints, one job each, chosen by the run's settings). The book itself holds
-the run's progress, its checkpoints (``last.pt``, ``best.pt``, the local resume copy; read back
-by :func:`walkers.training.resume.restore`), the training env's first reset, the episode log,
-the CPU-time count and the ``final/*`` summary. A population has one book per member.
+the run's progress, its checkpoints (``last.pt``, ``best.pt``, the local resume copy, each a
+:class:`~walkers.training.checkpoints.Checkpoint`), the training env's first reset, the episode
+log, the CPU-time count and the ``final/*`` summary. A resumed run's book starts from its last
+checkpoint (``start``). A population has one book per member.
 """
 
 from __future__ import annotations
@@ -27,9 +28,11 @@ from walkers.seeding import (
     env_rng_state,
     eval_start_seeds,
     restore_env_rng,
+    restore_torch_rng,
     torch_rng_state,
     training_env_seed,
 )
+from walkers.training.checkpoints import Checkpoint
 from walkers.training.evaluation import Evaluation, greedy_evaluation
 from walkers.training.run import ENV_STEP_AXIS, Axis, TrainingRun
 from walkers.training.services import RunService, chosen_services
@@ -58,7 +61,8 @@ class RunBook:
     patience; ``threshold`` is the env's return for ``final/steps_to_threshold``; ``env_member``:
     a population member's place in the vector env ``env`` of all members' training envs;
     ``on_evaluation`` (a sweep trial's pruner, ``(step, eval mean) -> stop?``) adds pruning to
-    the services."""
+    the services; ``config``: the run's shareable config, kept in every checkpoint; ``start``:
+    the checkpoint a resumed run goes on from (:meth:`continue_from`)."""
 
     def __init__(
         self,
@@ -68,19 +72,20 @@ class RunBook:
         run: TrainingRun,
         settings: RunSettings,
         threshold: float,
-        checkpoint_extra: dict | None = None,
+        config: dict | None = None,
         video_env: gym.Env | None = None,
         on_evaluation: Callable[[int, float], bool] | None = None,
         evaluation: Evaluation = greedy_evaluation,
         axis: Axis = ENV_STEP_AXIS,
         summarize: Callable[[dict[str, float]], dict[str, float]] | None = None,
         env_member: int | None = None,
+        start: Checkpoint | None = None,
     ):
         self.agent, self.env, self.eval_env, self.video_env = agent, env, eval_env, video_env
         # a population member's env is env_member of the population's vector env ``env``
         self.env_member = env_member
         self.run, self.settings, self.threshold, self.axis = run, settings, threshold, axis
-        self.checkpoint_extra = checkpoint_extra or {}  # e.g. the composed config
+        self.config = config or {}
         self.services: list[RunService] = chosen_services(settings, on_evaluation)
         # the steps any service may have work at are multiples of these (or the last)
         self._periods = sorted({service.every(settings) for service in self.services})
@@ -92,31 +97,64 @@ class RunBook:
         # a resumed run's training-env RNG, until its first reset
         self.pending_env_rng: dict | None = None
         self.eval_start_seeds = eval_start_seeds(settings.seed, settings.eval_episodes)
+        if start is not None:
+            self.continue_from(start)
         self.start_clock(time.perf_counter())
 
     # --- checkpoints --------------------------------------------------------------------------
     def save_checkpoint(self, name: str = "last.pt") -> None:
         """Write ``name`` and upload it; keep ``last.pt`` whole as the run's local resume copy
-        (:func:`walkers.training.resume.restore` reads them back).
+        (:meth:`continue_from` goes on from it).
 
         The uploaded ``last.pt`` holds the replay buffer only with ``save_buffer=true`` (it is
         large); the local resume copy always does, so a resume on this machine is exact.
         """
-        last = name == "last.pt"
+        last, with_buffer = name == "last.pt", self.settings.save_buffer
         self.cpu_hours()  # counted up to now, so a resume goes on from here
-        state = {
-            "trainer": dataclasses.asdict(self.progress),
+        checkpoint = Checkpoint(
+            trainer=dataclasses.asdict(self.progress),
+            agent=self.agent.state_dict(with_buffer=last and with_buffer),
+            config=self.config,
+            env_rng=env_rng_state(self.env, self.env_member) if self.env is not None else None,
             **torch_rng_state(),
-            "env_rng": env_rng_state(self.env, self.env_member) if self.env is not None else None,
-            **self.checkpoint_extra,
-        }
+        )
         whole = None
-        if last and not self.settings.save_buffer:
-            whole = state | {"agent": self.agent.state_dict(with_buffer=True)}
-        state["agent"] = self.agent.state_dict(with_buffer=last and self.settings.save_buffer)
-        if last and self.settings.save_buffer:
-            whole = state
-        self.run.save_checkpoint(name, state, resume_state=whole)
+        if last:
+            whole = (
+                checkpoint
+                if with_buffer
+                else checkpoint.with_agent(self.agent.state_dict(with_buffer=True))
+            )
+        self.run.save_checkpoint(name, checkpoint, resume_copy=whole)
+
+    def continue_from(self, start: Checkpoint) -> None:
+        """Go on with the run from ``start``, a checkpoint :meth:`save_checkpoint` wrote: the
+        agent, the loop's progress, torch's RNGs, the training env's RNG (taken at the first
+        reset), and the agent's resume notes as run tags."""
+        self.agent.load_state_dict(start.agent)
+        self.progress = Progress(**start.progress)
+        self.last_checkpoint_step = self.progress.step
+        restore_torch_rng({"torch_rng": start.torch_rng, "cuda_rng": start.cuda_rng})
+        self.pending_env_rng = start.env_rng
+        mark = self.run.logged_through
+        if mark is not None and mark > self.progress.step:
+            log.warning(
+                "run %s logged metrics up to step %d before it stopped; it resumes from its "
+                "checkpoint at step %d and logs from step %d on (no step is logged twice)",
+                self.run.run_id,
+                mark,
+                self.progress.step,
+                mark + 1,
+            )
+        if notes := self.agent.resume_notes():  # e.g. a replay buffer that had to be refilled
+            if refill := notes.get("walkers.buffer_refill"):
+                log.warning(
+                    "run %s resumed without the replay buffer's transitions: refilling them, "
+                    "%s, before updating again",
+                    self.run.run_id,
+                    refill,
+                )
+            self.run.set_tags(notes)
 
     def checkpoint_and_flush(self) -> None:
         self.save_checkpoint("last.pt")

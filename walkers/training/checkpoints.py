@@ -1,9 +1,14 @@
-"""Checkpoint files: written atomically, verified on load; an agent restored from one."""
+"""A run's checkpoints (``last.pt``, ``best.pt``): what they hold (:class:`Checkpoint`, the one
+type that writes and reads them), the files written atomically and verified on load, and an
+agent restored from one."""
 
 from __future__ import annotations
 
+import dataclasses
+import math
 import os
 import tempfile
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -55,11 +60,69 @@ def load(path: str | os.PathLike) -> dict:
     return state
 
 
-def agent_from_checkpoint(state: dict, env, device: str):
+@dataclass(frozen=True)
+class Checkpoint:
+    """What a run's checkpoint holds, by name (the file holds the same names, as a dict).
+
+    ``trainer`` is the loop's progress (:class:`walkers.training.bookkeeping.Progress` as a
+    dict), ``agent`` the agent's state (with or without its replay buffer), ``config`` the
+    run's composed config (shareable: no secrets), ``torch_rng`` and ``cuda_rng`` torch's
+    generators (:func:`walkers.seeding.torch_rng_state`), ``env_rng`` the training env's
+    generator (None for a run without one: offline).
+    """
+
+    trainer: dict
+    agent: dict
+    config: dict
+    torch_rng: torch.Tensor
+    cuda_rng: list | None = None
+    env_rng: dict | None = None
+
+    @property
+    def step(self) -> int:
+        """The run's step when it was written (env steps; offline: gradient steps)."""
+        return self.trainer["step"]
+
+    @property
+    def num_updates(self) -> int | None:
+        return self.agent.get("num_updates")
+
+    @property
+    def progress(self) -> dict:
+        """The loop's progress to go on from; a checkpoint from before runs counted their CPU
+        time has a total that is unknown, not 0."""
+        return {"cpu_seconds": math.nan} | self.trainer
+
+    def run_config(self) -> DictConfig:
+        return OmegaConf.create(self.config)
+
+    def with_agent(self, agent: dict) -> Checkpoint:
+        """This checkpoint with another agent state (the same agent with its replay buffer)."""
+        return dataclasses.replace(self, agent=agent)
+
+    def write(self, path: str | os.PathLike) -> Path:
+        """Write it to ``path`` atomically (:func:`save`); its tensors are written, not copied."""
+        return save({f.name: getattr(self, f.name) for f in dataclasses.fields(self)}, path)
+
+    @classmethod
+    def read(cls, path: str | os.PathLike) -> Checkpoint:
+        """The checkpoint at ``path``; a damaged or foreign file raises :class:`CheckpointError`."""
+        return cls.of(load(path))
+
+    @classmethod
+    def of(cls, state: dict) -> Checkpoint:
+        """A checkpoint from the dict a file holds (:func:`load`)."""
+        names = {f.name for f in dataclasses.fields(cls)}
+        return cls(**{key: value for key, value in state.items() if key in names})
+
+
+def agent_from_checkpoint(checkpoint: Checkpoint | dict, env, device: str):
     """The run config stored in a checkpoint and its agent, restored, for acting on ``env``:
     ``(run config, agent)``."""
-    run_cfg: DictConfig = OmegaConf.create(state["config"])
+    if isinstance(checkpoint, dict):
+        checkpoint = Checkpoint.of(checkpoint)
+    run_cfg = checkpoint.run_config()
     run_cfg.device = device
     agent = build_agent(run_cfg, env_spaces(env))
-    agent.load_state_dict(state["agent"])
+    agent.load_state_dict(checkpoint.agent)
     return run_cfg, agent

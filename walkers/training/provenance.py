@@ -29,6 +29,9 @@ WORKER_TAG = "walkers.worker"
 #: Tags of a population member's run: the population's size, the member's place in it.
 POPULATION_TAG = "walkers.population"
 MEMBER_TAG = "walkers.population_member"
+#: Tag: what identifies a plain command's runs across attempts (the same command continues
+#: them: :func:`walkers.training.resume.command_key`).
+COMMAND_KEY_TAG = "walkers.command_key"
 #: Tag of an earlier attempt's run that a job run again could not continue (it is FAILED).
 SUPERSEDED_TAG = "walkers.superseded"
 #: Tag of a run that ended FAILED because its updates diverged (the step): a rerun would too.
@@ -37,7 +40,7 @@ DIVERGED_TAG = "walkers.diverged_at_step"
 
 def new_run_tags(cfg: DictConfig, x_axis: str, data=None) -> dict[str, str]:
     """The tags a new run starts with; ``x_axis``: what its steps count; ``data``: an offline
-    run's dataset."""
+    run's data (:class:`~walkers.training.run_dataset.RunDataset`)."""
     from walkers.agents.fingerprint import CODE_DIGEST_TAG, code_digest  # torch: module doc
 
     commit = git_commit()
@@ -54,7 +57,7 @@ def new_run_tags(cfg: DictConfig, x_axis: str, data=None) -> dict[str, str]:
         tracking.X_AXIS_TAG: x_axis,
     }
     if data is not None:
-        tags["dataset"] = data.id
+        tags["dataset"] = data.dataset.id
     if cfg.job_key:
         tags[tracking.JOB_KEY_TAG] = cfg.job_key
     return tags
@@ -183,13 +186,10 @@ def other_data(recorded: dict[str, str], now: dict[str, str]) -> str | None:
     return None
 
 
-def dataset_params(data, env_cfg) -> dict[str, str]:
-    """An offline run's dataset statistics, as params, with the references its normalized scores
-    are measured between and the behaviour policy's own score on them."""
-    from walkers.training.evaluation import offline_references  # see the module's doc
-
+def dataset_params(data, references) -> dict[str, str]:
+    """An offline run's dataset statistics, as params, with the ``references`` its normalized
+    scores are measured between and the behaviour policy's own score on them."""
     returns = data.returns
-    references = offline_references(env_cfg, data)
     behaviour = data.behaviour_return
     behaviour_score = None if behaviour is None else references.normalized(behaviour)
     return {

@@ -1,39 +1,47 @@
-"""How a run continues: every way training picks up where a run left off, in one module.
+"""How a run continues: every way training picks up where a run left off, in one module, asked
+once per command by the plan (:func:`continuation`).
 
 - ``resume=<id>`` (``resume=[<id>,...]`` for a population's runs together): the run's stored
   config with the overrides allowed on resume (:func:`load_run`, :func:`load_population`);
-- a job run again (its ``job_key``): FINISHED runs are its result (:func:`finished_attempts`),
-  a RUNNING, KILLED or FAILED one continues (:func:`continue_earlier_attempt`);
+- the same command run again: a job's (its ``job_key``: a multirun's, a sweep's, a study's) or a
+  plain command's (its :func:`command_key`: the composed config less what may change on resume).
+  FINISHED runs are its result (:func:`finished_attempts`); a RUNNING, KILLED or FAILED one
+  continues (:func:`continue_earlier_attempt`);
 - which checkpoint: the local resume copy or MLflow's, the newer (:func:`last_checkpoint`);
-- an offline run goes on learning from the data it started on (:func:`check_same_data`);
-- into the run: agent, progress, RNGs and the agent's resume notes (:func:`restore`).
+- an offline run goes on learning from the data it started on (:func:`check_same_data`).
 
-The run itself is reopened by :meth:`TrainingRun.open` (``cfg.resume`` set), and the checkpoints
-read here are written by :meth:`RunBook.save_checkpoint`.
+The run itself is reopened by :meth:`TrainingRun.open` (``cfg.resume`` set), and the book goes on
+from the checkpoint found here (:meth:`RunBook.continue_from`).
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
 import logging
-import math
+import socket
+from collections.abc import Callable
+from dataclasses import dataclass
 
 from omegaconf import DictConfig, OmegaConf
 
 from walkers import tracking
 from walkers.agents.declarations.schemas import declared_since
-from walkers.errors import CheckpointError, ConfigError
-from walkers.seeding import restore_torch_rng
+from walkers.errors import ConfigError
 from walkers.tracking import differing_keys, flatten
-from walkers.training import checkpoints
-from walkers.training.bookkeeping import Progress, RunBook
+from walkers.training.checkpoints import Checkpoint
 from walkers.training.provenance import (
+    COMMAND_KEY_TAG,
     DIVERGED_TAG,
     MEMBER_TAG,
     SUPERSEDED_TAG,
-    dataset_params,
+    WORKER_TAG,
+    code_digests,
     other_data,
 )
-from walkers.training.run import RunFolder, TrainingRun, job_key_of_seed, run_job_keys
+from walkers.training.run import has_checkpoint, in_training_here, supersede
+from walkers.training.run import last_checkpoint as run_last_checkpoint
+from walkers.training.run_dataset import RunDataset
 
 log = logging.getLogger("walkers")
 
@@ -52,26 +60,99 @@ RESUME_OVERRIDABLE = (
     "video_every",
 )
 
+#: What is not part of a plain command's identity (:func:`command_key`) beside
+#: :data:`RESUME_OVERRIDABLE`: the run to resume, a job's key, a sweep's trial and study (their
+#: storage's password included), where the run is logged (the store and experiment it is looked
+#: for in); a run's name is part of it.
+NOT_THE_COMMAND = ("resume", "job_key", "algo.total_steps", "trial.", "optuna.", "tracking.")
 
-def check_resume_given(resume) -> None:
-    """``resume=`` with nothing after it (``resume=$RUN_ID`` with the variable unset) is a
-    mistake, never a request for a fresh run."""
-    empty = resume is not None and (
-        (isinstance(resume, str) and not resume.strip())
-        or (OmegaConf.is_list(resume) and len(resume) == 0)
-    )
-    if empty:
-        raise ConfigError(
-            f"resume={resume!r} is empty: pass the MLflow run id to continue (resume=<run id>, "
-            "or resume=[<id>,<id>] for a population), or leave resume out to start a new run"
-        )
+
+@dataclass(frozen=True)
+class Continuation:
+    """What the store says the command does: ``cfg``, the config to train (the command's, or a
+    continued run's stored one with the overrides it takes); per run, its config and the
+    checkpoint it goes on from (``members``; None: a new run); ``finished``: the runs that
+    already did what the command asks (nothing to train); ``command_key``: the command's
+    identity, for the tags of new runs."""
+
+    cfg: DictConfig
+    command_key: str
+    members: list[tuple[DictConfig, Checkpoint | None]]
+    finished: list | None = None
+
+    @property
+    def continued(self) -> bool:
+        return any(start is not None for _, start in self.members)
+
+
+def continuation(
+    client, cfg: DictConfig, overrides, run_dataset: Callable[[DictConfig], RunDataset]
+) -> Continuation:
+    """What ``cfg`` does: continue ``resume=``, or the run(s) the same command started before
+    (found by a job's key or the :func:`command_key`); nothing, if those FINISHED; else start
+    new runs, one per member. ``run_dataset`` loads an offline run's data (once a session)."""
+    if cfg.population == 1:  # the key and name of the one run: its seed's, as a member's
+        cfg.job_key = job_key_of_seed(cfg.job_key, cfg.seed)
+        cfg.tracking.run_name = job_key_of_seed(cfg.tracking.run_name, cfg.seed)
+    key = command_key(cfg)
+    if not cfg.resume:
+        done = finished_attempts(client, cfg, key)
+        if done:
+            return Continuation(cfg, key, [], finished=done)
+        cfg = continue_earlier_attempt(client, cfg, key, run_dataset)
+    if OmegaConf.is_list(cfg.resume):  # several runs, continued together as one population
+        cfg, members = load_population(client, cfg, overrides)
+        return Continuation(cfg, key, members)
+    if cfg.resume:  # the run's own config, plus the overrides allowed on resume
+        cfg, start = load_run(client, cfg, overrides)
+        if cfg.get("dataset"):
+            check_same_data(client, cfg, run_dataset(cfg))
+        return Continuation(cfg, key, [(cfg, start)])
+    k = cfg.population
+    members = [cfg] if k == 1 else [member_config(cfg, i) for i in range(k)]
+    return Continuation(cfg, key, [(member, None) for member in members])
+
+
+def member_config(cfg: DictConfig, i: int) -> DictConfig:
+    """Member ``i``'s config: seed ``seed + i``, and ``population=1`` (what resuming it means);
+    a job key or run name with ``{seed}`` in it gets the member's seed there (a study's jobs)."""
+    member = cfg.copy()
+    member.seed = cfg.seed + i
+    member.population = 1
+    member.job_key = job_key_of_seed(cfg.job_key, member.seed)
+    if SEED_IN_KEY in (cfg.tracking.run_name or ""):
+        member.tracking.run_name = job_key_of_seed(cfg.tracking.run_name, member.seed)
+    elif cfg.tracking.run_name:
+        member.tracking.run_name = f"{cfg.tracking.run_name}-m{i}"
+    return member
+
+
+def command_key(cfg: DictConfig) -> str:
+    """What identifies "the same command" of a plain run: a digest of the composed config, less
+    :data:`RESUME_OVERRIDABLE` and :data:`NOT_THE_COMMAND` (``tracking.run_name`` counts)."""
+    settings = flatten(OmegaConf.to_container(cfg, resolve=True))
+    kept = {
+        key: value
+        for key, value in settings.items()
+        if key not in RESUME_OVERRIDABLE
+        and key != "tracking.run_name"
+        and not any(key == p or (p.endswith(".") and key.startswith(p)) for p in NOT_THE_COMMAND)
+    }
+    kept["tracking.run_name"] = settings.get("tracking.run_name")
+    text = json.dumps(kept, sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
 def load_run(client, cfg: DictConfig, overrides, run_id: str | None = None):
     """The run's stored config (with the allowed new overrides) and its last checkpoint."""
     run_id = str(cfg.resume) if run_id is None else run_id
-    state = last_checkpoint(client, cfg, run_id)
-    stored = OmegaConf.create(state["config"])
+    if in_training_here(cfg.work_dir, run_id):
+        raise ConfigError(
+            f"resume={run_id} is not allowed now: a process of this machine is training the run; "
+            "wait for it to end, or stop it there"
+        )
+    start = last_checkpoint(client, cfg, run_id)
+    stored = start.run_config()
     given = {o.split("=", 1)[0].lstrip("+~") for o in overrides}
     for key in RESUME_OVERRIDABLE:
         if key in given:
@@ -87,7 +168,7 @@ def load_run(client, cfg: DictConfig, overrides, run_id: str | None = None):
     # (a study's population job: each member keyed by its own seed)
     stored.trial, stored.job_key = cfg.trial, job_key_of_seed(cfg.get("job_key"), stored.seed)
     stored.resume = run_id
-    return stored, state
+    return stored, start
 
 
 def _fill_hyperparameters_declared_since(algo: DictConfig, run_id: str) -> None:
@@ -119,8 +200,8 @@ def load_population(client, cfg: DictConfig, overrides):
         settings = flatten(OmegaConf.to_container(member_cfg, resolve=True))
         return {k: v for k, v in settings.items() if k not in ("seed", "resume", "job_key")}
 
-    (first_cfg, first_state), first = members[0], shared_settings(members[0][0])
-    for run_id, (member_cfg, state) in zip(run_ids[1:], members[1:], strict=True):
+    (first_cfg, first_start), first = members[0], shared_settings(members[0][0])
+    for run_id, (member_cfg, start) in zip(run_ids[1:], members[1:], strict=True):
         other = shared_settings(member_cfg)
         differing = differing_keys([first, other])
         if differing:
@@ -130,12 +211,15 @@ def load_population(client, cfg: DictConfig, overrides):
                 f"({first.get(key)!r} vs {other.get(key)!r}); only runs of one configuration "
                 "(seeds aside) continue together: resume the others alone"
             )
-        for counter, of in (("step", "trainer"), ("num_updates", "agent")):
-            if state[of][counter] != first_state[of][counter]:
+        for counter, here, there in (
+            ("step", first_start.step, start.step),
+            ("num_updates", first_start.num_updates, start.num_updates),
+        ):
+            if there != here:
                 raise ConfigError(
-                    f"{listed}: run {run_ids[0]} is at {counter} {first_state[of][counter]} and "
-                    f"run {run_id} at {counter} {state[of][counter]}; only runs at the same step "
-                    "and update continue together: resume them one by one"
+                    f"{listed}: run {run_ids[0]} is at {counter} {here} and run {run_id} at "
+                    f"{counter} {there}; only runs at the same step and update continue "
+                    "together: resume them one by one"
                 )
     population = first_cfg.copy()
     population.population = len(members)
@@ -143,85 +227,135 @@ def load_population(client, cfg: DictConfig, overrides):
     return population, members
 
 
-# --- a job run again -------------------------------------------------------------------------
-def _attempts(client, cfg: DictConfig) -> list:
-    """The runs earlier attempts of this job (``job_key``) left, any status."""
-    if not cfg.job_key:
-        return []
+#: In a job's key, what each of its runs replaces by its own seed (a study's population job:
+#: each member run is keyed as the single job of its seed would be).
+SEED_IN_KEY = "{seed}"
+
+
+def job_key_of_seed(job_key: str | None, seed: int) -> str | None:
+    """The key of the job's run of ``seed``: ``job_key`` with :data:`SEED_IN_KEY` filled in."""
+    return job_key.replace(SEED_IN_KEY, str(seed)) if job_key else job_key
+
+
+def run_job_keys(cfg: DictConfig) -> list[str]:
+    """The job key of each run the job makes: one for a single run, one per member of a
+    population (the same key for all, unless it holds :data:`SEED_IN_KEY`)."""
+    return [job_key_of_seed(cfg.job_key, cfg.seed + i) for i in range(cfg.population)]
+
+
+# --- the same command run again ---------------------------------------------------------------
+def _identity(cfg: DictConfig, key: str) -> tuple[str, list[str]]:
+    """The tag that tells this command's runs, and its value for each run it makes: a job's key
+    (one per member of a population, the same for all unless it holds ``{seed}``), or for a
+    plain command its :func:`command_key`, the same for every member."""
+    if cfg.job_key:
+        return tracking.JOB_KEY_TAG, run_job_keys(cfg)
+    return COMMAND_KEY_TAG, [key] * cfg.population
+
+
+def _attempts(client, cfg: DictConfig, key: str) -> list:
+    """The runs earlier attempts of this command left, any status."""
     experiment = client.get_experiment_by_name(cfg.tracking.experiment)
     if experiment is None:
         return []
+    tag, keys = _identity(cfg, key)
     runs = []
-    for key in dict.fromkeys(run_job_keys(cfg)):  # one key, or a key per member
-        query = tracking.tags_equal({tracking.JOB_KEY_TAG: key})
+    for value in dict.fromkeys(keys):
+        query = tracking.tags_equal({tag: value})
         runs += tracking.search_runs(client, experiment.experiment_id, query)
     return runs
 
 
-def finished_attempts(client, cfg: DictConfig) -> list | None:
-    """The FINISHED run of each of this job's runs (one, or one per member of a population),
+def finished_attempts(client, cfg: DictConfig, key: str) -> list | None:
+    """The FINISHED run of each of this command's runs (one, or one per member of a population),
     if earlier attempts finished them all; else None. A member's run is the single run of its
-    seed, so a population whose seeds all finished alone has nothing left to train either."""
-    keys = run_job_keys(cfg)
-    finished = [r for r in _attempts(client, cfg) if r.info.status == tracking.FINISHED]
-    shared_key = len(set(keys)) < len(keys)  # no {seed} in it: members told apart by their tag
+    seed, so a population whose seeds all finished alone has nothing left to train either.
+    Said in one line, with what to do instead."""
+    tag, keys = _identity(cfg, key)
+    finished = [r for r in _attempts(client, cfg, key) if r.info.status == tracking.FINISHED]
+    shared_key = len(set(keys)) < len(keys)  # members told apart by their tag
     done = []
-    for member, key in enumerate(keys):
+    for member, value in enumerate(keys):
         runs = [
             r
             for r in finished
-            if r.data.tags.get(tracking.JOB_KEY_TAG) == key
+            if r.data.tags.get(tag) == value
             and (not shared_key or r.data.tags.get(MEMBER_TAG) == str(member))
         ]
         if not runs:
             return None
         done.append(runs[0])
+    _say_finished(cfg, done)
     return done
 
 
-def continue_earlier_attempt(client, cfg: DictConfig) -> DictConfig:
-    """A job run again continues the run(s) of its earlier attempt instead of starting more.
+def _say_finished(cfg: DictConfig, done: list) -> None:
+    ids = ", ".join(run.info.run_id for run in done)
+    if cfg.job_key:
+        log.info("job %s already FINISHED as run(s) %s: nothing to train", cfg.job_key, ids)
+        return
+    from walkers.agents.fingerprint import code_digest  # torch: only when it is said
 
-    Ray runs a job again when its worker died (kill -9, ``ray stop`` on the node); a study
-    runs a trial again when its sweeper died (``optuna.max_retry``). The earlier attempt's
-    run, left RUNNING (or KILLED by SIGTERM), is found by the job's key (``job_key``) and
-    resumed from its last checkpoint, fetched from MLflow on whatever worker this is; a
-    population's K member runs are resumed together (``resume=[...]``). A run that ended
-    FAILED (an error, not a divergence) is continued the same way, as a rerun of an A/B
-    study asks. Without checkpoints to continue from (none yet, or a population's members
-    cut at different steps) the earlier runs are marked FAILED (tagged superseded) and new
-    ones start.
+    other_code = [r.info.run_id for r in done if code_digest() not in code_digests(r.data.tags)]
+    log.info(
+        "this command already FINISHED as run(s) %s%s: nothing to train (more steps: "
+        "resume=%s total_steps=<more>; another sample: another seed; a new run of the same "
+        "config: another tracking.run_name)",
+        ids,
+        f", trained by other update code than this checkout's (run(s) {', '.join(other_code)})"
+        if other_code
+        else "",
+        done[0].info.run_id if len(done) == 1 else f"[{ids.replace(', ', ',')}]",
+    )
+
+
+def continue_earlier_attempt(
+    client, cfg: DictConfig, key: str, run_dataset: Callable[[DictConfig], RunDataset]
+) -> DictConfig:
+    """The same command run again continues the run(s) of its earlier attempt instead of
+    starting more.
+
+    A plain command run again after a Ctrl-C, a SIGTERM, a ``kill -9`` or a reboot; a multirun
+    job Ray runs again when its worker died (kill -9, ``ray stop`` on the node); a trial a study
+    runs again when its sweeper died (``optuna.max_retry``). The earlier attempt's run, left
+    RUNNING (or KILLED), is found by its key and resumed from its last checkpoint, fetched from
+    MLflow on whatever worker this is; a population's K member runs are resumed together
+    (``resume=[...]``). A run that ended FAILED (an error, not a divergence) is continued the
+    same way, as a rerun of an A/B study asks. Without checkpoints to continue from (none yet,
+    or a population's members cut at different steps) the earlier runs are marked FAILED
+    (tagged superseded) and new ones start.
     """
     earlier = [
         r
-        for r in _attempts(client, cfg)
+        for r in _attempts(client, cfg, key)
         if r.info.status in ("RUNNING", "KILLED")
         or (r.info.status == "FAILED" and not _gave_up_on(r))
     ]
     if not earlier:
         return cfg
+    what = f"job {cfg.job_key}" if cfg.job_key else "this command"
+    for run in earlier:
+        if busy := _training_now(cfg, run):
+            raise ConfigError(f"{what} {busy}")
     if cfg.population > 1:
         by_member = {int(r.data.tags.get(MEMBER_TAG, -1)): r for r in earlier}
         runs = [by_member.get(i) for i in range(cfg.population)]
     else:
         runs = earlier[:1]
-    problem = _why_not_continued(client, cfg, runs)
+    problem = _why_not_continued(client, cfg, runs, run_dataset)
     ids = [r.info.run_id for r in earlier if r is not None]
     if problem:
         log.warning(
-            "job %s ran before as run(s) %s, %s: marked FAILED; starting anew",
-            cfg.job_key,
+            "%s ran before as run(s) %s, %s: marked FAILED; starting anew",
+            what,
             ", ".join(ids),
             problem,
         )
-        for run_id in ids:
-            run = TrainingRun.attach(client, cfg.work_dir, run_id)
-            run.set_tags({SUPERSEDED_TAG: f"{problem}: the job ran again as new run(s)"})
-            run.end(tracking.FAILED)
+        supersede(client, cfg.work_dir, ids, f"{problem}: the job ran again as new run(s)")
         return cfg
     log.warning(
-        "job %s ran before as run(s) %s (%s): continuing it from its last checkpoint",
-        cfg.job_key,
+        "%s ran before as run(s) %s (%s): continuing it from its last checkpoint",
+        what,
         ", ".join(ids),
         earlier[0].info.status,
     )
@@ -230,52 +364,46 @@ def continue_earlier_attempt(client, cfg: DictConfig) -> DictConfig:
     return cfg
 
 
-def check_same_data(client, cfg: DictConfig, data) -> None:
+def check_same_data(client, cfg: DictConfig, data: RunDataset) -> None:
     """A resumed offline run reloads its dataset by name; refuse, in one line, a dataset rebuilt
     under that name since the run started (other episodes, or another CPU's rounding): the run
     would go on learning from other data. (A job run again does not get here: its earlier run
     is superseded instead, :func:`_why_not_continued`.)"""
     recorded = client.get_run(str(cfg.resume)).data.params
-    difference = other_data(recorded, dataset_params(data, cfg.env))
+    difference = other_data(recorded, data.params)
     if difference:
         raise ConfigError(
-            f"resume={cfg.resume} is not allowed: dataset={data.id!r} is not the data the run "
-            f"learned from ({difference}): a rebuild under its name; restore that build, or "
-            "train a new run"
+            f"resume={cfg.resume} is not allowed: dataset={data.dataset.id!r} is not the data "
+            f"the run learned from ({difference}): a rebuild under its name; restore that "
+            "build, or train a new run"
         )
 
 
-def last_checkpoint(client, cfg: DictConfig, run_id: str) -> dict:
+def last_checkpoint(client, cfg: DictConfig, run_id: str) -> Checkpoint:
     """Run ``run_id``'s ``last.pt`` (a clear error if ``tracking.uri`` has no such run):
     the local resume copy (replay buffer included) where this machine trained the run and
     MLflow's is not newer, else the one uploaded to MLflow."""
     tracking.require_run(client, run_id, cfg.tracking.uri, key="resume")
-    return _last_checkpoint(client, run_id, cfg.work_dir)
+    return run_last_checkpoint(client, cfg.work_dir, run_id)
 
 
-# --- its last checkpoint, and into the run --------------------------------------------------
-def _last_checkpoint(client, run_id: str, work_dir) -> dict:
-    folder = RunFolder.of(work_dir, run_id)
-    local = folder.resume_checkpoint
-    try:
-        uploaded = tracking.download_checkpoint(client, run_id, "last.pt", folder.download)
-    except CheckpointError:  # never uploaded (e.g. the store was down): the local copy will do
-        if not local.is_file():
-            raise
-        uploaded = None
-    uploaded = checkpoints.load(uploaded) if uploaded is not None else None  # damaged: an error
-    if local.is_file():
-        whole = checkpoints.load(local)
-        if uploaded is None or whole["trainer"]["step"] >= uploaded["trainer"]["step"]:
-            log.info("resuming from %s (with its replay buffer, if the agent has one)", local)
-            return whole
-        log.warning(
-            "%s is at step %d, MLflow's last.pt at step %d: resuming from MLflow's",
-            local,
-            whole["trainer"]["step"],
-            uploaded["trainer"]["step"],
+def _training_now(cfg: DictConfig, run) -> str | None:
+    """Why an earlier attempt's run is not to be continued now: a process of this machine trains
+    it (it holds the run's lock), or, for a plain command, it is RUNNING on another machine,
+    which only its user can say is dead."""
+    run_id, worker = run.info.run_id, run.data.tags.get(WORKER_TAG, "")
+    if in_training_here(cfg.work_dir, run_id):
+        return (
+            f"is training now as run {run_id} in another process of this machine: wait for it "
+            "to end, or stop it there (another run of the same config: another tracking.run_name)"
         )
-    return uploaded
+    host = worker.split("/")[0]
+    if not cfg.job_key and run.info.status == "RUNNING" and host and host != socket.gethostname():
+        return (
+            f"has run {run_id} RUNNING on {worker}: if it died there, continue it here with "
+            f"resume={run_id}; else wait for it"
+        )
+    return None
 
 
 def _gave_up_on(run) -> bool:
@@ -283,57 +411,22 @@ def _gave_up_on(run) -> bool:
     return SUPERSEDED_TAG in run.data.tags or DIVERGED_TAG in run.data.tags
 
 
-def _why_not_continued(client, cfg: DictConfig, runs: list) -> str | None:
+def _why_not_continued(
+    client, cfg: DictConfig, runs: list, run_dataset: Callable[[DictConfig], RunDataset]
+) -> str | None:
     """Why the earlier attempt's runs (one per member, None where missing) cannot go on."""
     if any(r is None for r in runs):
         return f"which are not the {cfg.population} members of a population"
     if cfg.get("dataset"):  # an offline job: its dataset may have been rebuilt since
-        from walkers.data import datasets  # Minari is imported only when a dataset is used
-
-        now = dataset_params(datasets.load(cfg.dataset), cfg.env)
-        difference = other_data(runs[0].data.params, now)
+        difference = other_data(runs[0].data.params, run_dataset(cfg).params)
         if difference:
             return f"which learned from another build of dataset={cfg.dataset} ({difference})"
+    ids = [run.info.run_id for run in runs]
+    if not all(has_checkpoint(client, cfg.work_dir, run_id) for run_id in ids):
+        return "which ended without a checkpoint"
     steps = set()
-    for run in runs:
-        run_id = run.info.run_id
-        uploaded = [a.path for a in client.list_artifacts(run_id, "checkpoints")]
-        local = RunFolder.of(cfg.work_dir, run_id).resume_checkpoint
-        if "checkpoints/last.pt" not in uploaded and not local.is_file():
-            return "which ended without a checkpoint"
-        if len(runs) > 1:  # members continue together only from one step
-            steps.add(_last_checkpoint(client, run_id, cfg.work_dir)["trainer"]["step"])
+    if len(runs) > 1:  # members continue together only from one step
+        steps = {run_last_checkpoint(client, cfg.work_dir, run_id).step for run_id in ids}
     if len(steps) > 1:
         return f"whose members' checkpoints are at different steps {sorted(steps)}"
     return None
-
-
-def restore(book: RunBook, state: dict) -> None:
-    """Continue the book's run from ``state``, a checkpoint written by
-    :meth:`RunBook.save_checkpoint`: the agent, the loop's progress, torch's RNGs, the training
-    env's RNG (taken at the book's first reset), and the agent's resume notes as run tags."""
-    book.agent.load_state_dict(state["agent"])
-    # a checkpoint from before runs counted their CPU time: the total is unknown, not 0
-    book.progress = Progress(**{"cpu_seconds": math.nan} | state["trainer"])
-    book.last_checkpoint_step = book.progress.step
-    restore_torch_rng(state)
-    book.pending_env_rng = state.get("env_rng")
-    mark = book.run.logged_through
-    if mark is not None and mark > book.progress.step:
-        log.warning(
-            "run %s logged metrics up to step %d before it stopped; it resumes from its "
-            "checkpoint at step %d and logs from step %d on (no step is logged twice)",
-            book.run.run_id,
-            mark,
-            book.progress.step,
-            mark + 1,
-        )
-    if notes := book.agent.resume_notes():  # e.g. a replay buffer that had to be refilled
-        if refill := notes.get("walkers.buffer_refill"):
-            log.warning(
-                "run %s resumed without the replay buffer's transitions: refilling them, "
-                "%s, before updating again",
-                book.run.run_id,
-                refill,
-            )
-        book.run.set_tags(notes)

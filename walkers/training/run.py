@@ -11,6 +11,7 @@ its final status on every way out; which run continues, and from which checkpoin
         config.yaml                  the resolved config (secrets redacted), also logged
         checkpoints/best.pt, last.pt uploaded to MLflow after each write
         resume/last.pt               last.pt with the replay buffer: an exact resume here
+        training.lock                held while a process trains the run (none other may)
         videos/step_<step>.gif       the training gifs, uploaded
         download/                    checkpoints fetched from MLflow (resume elsewhere, evaluate)
         unlogged_metrics.jsonl       metrics MLflow never took (the store down at the end)
@@ -18,6 +19,7 @@ its final status on every way out; which run continues, and from which checkpoin
 
 from __future__ import annotations
 
+import fcntl
 import logging
 from collections.abc import Mapping
 from contextlib import contextmanager
@@ -27,10 +29,12 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 from walkers import tracking
-from walkers.training import checkpoints
+from walkers.errors import CheckpointError, ConfigError
+from walkers.interrupts import RunsStopped
+from walkers.training.checkpoints import Checkpoint
 from walkers.training.provenance import (
+    SUPERSEDED_TAG,
     WORKER_TAG,
-    dataset_params,
     new_run_tags,
     resumed_code_tags,
     run_name,
@@ -100,6 +104,11 @@ class RunFolder:
         """``last.pt`` with everything a resume needs (the replay buffer included), kept here."""
         return self.root / "resume" / "last.pt"
 
+    @property
+    def lock(self) -> Path:
+        """Locked (``flock``) while a process of this machine trains the run."""
+        return self.root / "training.lock"
+
     def video(self, step: int) -> Path:
         return self.root / "videos" / f"step_{step:08d}.gif"
 
@@ -114,6 +123,23 @@ class TrainingRun:
     def __init__(self, tracker: tracking.Tracker, folder: RunFolder):
         self.tracker, self.folder = tracker, folder
         tracker.spool_dir = folder.root  # what MLflow never takes is kept with the run
+        self._lock = None  # the open lock file while this process trains the run
+
+    def _hold_lock(self) -> None:
+        """Hold the run's lock while it trains (the kernel lets go of it when the process dies,
+        ``kill -9`` included): :func:`in_training_here` asks it."""
+        path = self.folder.lock
+        path.parent.mkdir(parents=True, exist_ok=True)
+        lock = open(path, "a")  # noqa: SIM115 (held until the run ends)
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            lock.close()
+            raise ConfigError(
+                f"run {self.run_id} is training in another process of this machine: wait for it "
+                "to end, or stop it there"
+            ) from None
+        self._lock = lock
 
     # --- opening ------------------------------------------------------------------------------
     @classmethod
@@ -123,7 +149,8 @@ class TrainingRun:
         """The resumed run (``cfg.resume``) reopened, or a new one with the config as params and
         tags; either way with its ``config.yaml`` written and logged.
 
-        ``axis``: what the run's steps count; ``data``: an offline run's dataset; ``extra_tags``
+        ``axis``: what the run's steps count; ``data``: an offline run's
+        :class:`~walkers.training.run_dataset.RunDataset`; ``extra_tags``
         are set either way (a population member: its place in the population). If opening
         fails, the run ends at once: a new run FAILED (KILLED if a signal stopped it); a resumed
         run KILLED, as it was stopped before it could go on, so that it can still be continued
@@ -145,7 +172,8 @@ class TrainingRun:
             else:
                 tracker.log_params(tracking.flatten(shareable(cfg)))
                 if data is not None:
-                    tracker.log_params(dataset_params(data, cfg.env))
+                    tracker.log_params(data.params)
+            run._hold_lock()
             run._write_config(cfg)
         except BaseException as e:  # a signal here ends a new run KILLED too: its job reruns
             tracker.end(tracking.KILLED if cfg.resume else tracking.status_after(e))
@@ -188,12 +216,14 @@ class TrainingRun:
     def mark_pruned(self, step: int) -> None:
         self.tracker.set_tags({tracking.PRUNED_TAG: step})
 
-    def save_checkpoint(self, name: str, state: dict, resume_state: dict | None = None) -> Path:
-        """Write ``checkpoints/<name>`` and upload it; ``resume_state`` (``last.pt`` whole) is
+    def save_checkpoint(
+        self, name: str, checkpoint: Checkpoint, resume_copy: Checkpoint | None = None
+    ) -> Path:
+        """Write ``checkpoints/<name>`` and upload it; ``resume_copy`` (``last.pt`` whole) is
         kept as the local resume copy."""
-        if resume_state is not None:
-            checkpoints.save(resume_state, self.folder.resume_checkpoint)
-        path = checkpoints.save(state, self.folder.checkpoint(name))
+        if resume_copy is not None:
+            resume_copy.write(self.folder.resume_checkpoint)
+        path = checkpoint.write(self.folder.checkpoint(name))
         self.tracker.log_artifact(path, "checkpoints")
         return path
 
@@ -208,26 +238,70 @@ class TrainingRun:
 
     def end(self, status: str) -> None:
         self.tracker.end(status)
+        if self._lock is not None:
+            self._lock.close()  # lets go of it
+            self._lock = None
 
     @property
     def url(self) -> str:
         return self.tracker.url
 
 
-#: In a job's key, what each of its runs replaces by its own seed (a study's population job:
-#: each member run is keyed as the single job of its seed would be).
-SEED_IN_KEY = "{seed}"
+def last_checkpoint(client, work_dir, run_id: str) -> Checkpoint:
+    """Run ``run_id``'s ``last.pt``: the local resume copy (replay buffer included) where this
+    machine trained the run and MLflow's is not newer, else the one uploaded to MLflow."""
+    folder = RunFolder.of(work_dir, run_id)
+    local = folder.resume_checkpoint
+    try:
+        uploaded = tracking.download_checkpoint(client, run_id, "last.pt", folder.download)
+    except CheckpointError:  # never uploaded (e.g. the store was down): the local copy will do
+        if not local.is_file():
+            raise
+        uploaded = None
+    uploaded = Checkpoint.read(uploaded) if uploaded is not None else None  # damaged: an error
+    if local.is_file():
+        whole = Checkpoint.read(local)
+        if uploaded is None or whole.step >= uploaded.step:
+            log.info("resuming from %s (with its replay buffer, if the agent has one)", local)
+            return whole
+        log.warning(
+            "%s is at step %d, MLflow's last.pt at step %d: resuming from MLflow's",
+            local,
+            whole.step,
+            uploaded.step,
+        )
+    return uploaded
 
 
-def job_key_of_seed(job_key: str | None, seed: int) -> str | None:
-    """The key of the job's run of ``seed``: ``job_key`` with :data:`SEED_IN_KEY` filled in."""
-    return job_key.replace(SEED_IN_KEY, str(seed)) if job_key else job_key
+def in_training_here(work_dir, run_id: str) -> bool:
+    """Whether a process of this machine trains run ``run_id`` now (it holds the run's lock)."""
+    path = RunFolder.of(work_dir, run_id).lock
+    if not path.is_file():
+        return False
+    with open(path, "a") as lock:
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return True
+        fcntl.flock(lock, fcntl.LOCK_UN)
+    return False
 
 
-def run_job_keys(cfg: DictConfig) -> list[str]:
-    """The job key of each run the job makes: one for a single run, one per member of a
-    population (the same key for all, unless it holds :data:`SEED_IN_KEY`)."""
-    return [job_key_of_seed(cfg.job_key, cfg.seed + i) for i in range(cfg.population)]
+def has_checkpoint(client, work_dir, run_id: str) -> bool:
+    """Whether run ``run_id`` left a ``last.pt`` to continue from (uploaded, or kept here)."""
+    uploaded = [a.path for a in client.list_artifacts(run_id, "checkpoints")]
+    return (
+        "checkpoints/last.pt" in uploaded
+        or RunFolder.of(work_dir, run_id).resume_checkpoint.is_file()
+    )
+
+
+def supersede(client, work_dir, run_ids: list[str], why: str) -> None:
+    """End earlier runs a new attempt replaces: FAILED, tagged with ``why``."""
+    for run_id in run_ids:
+        run = TrainingRun.attach(client, work_dir, run_id)
+        run.set_tags({SUPERSEDED_TAG: why})
+        run.end(tracking.FAILED)
 
 
 @contextmanager
@@ -235,16 +309,31 @@ def ending(runs: list[TrainingRun], population: bool = False):
     """Every run in ``runs`` (a list that may grow inside the block) ends FINISHED, KILLED or
     FAILED on the way out (:func:`walkers.tracking.ending`); then the log says how each ended,
     where to see it, and the command that continues it (a population's always, a single run's
-    if it was killed)."""
+    if it was killed). A Ctrl-C that ends runs says which, for the command's last line."""
     try:
         with tracking.ending(runs):
             yield
+    except KeyboardInterrupt as stop:
+        if runs and not isinstance(stop, RunsStopped):
+            ids = ", ".join(run.run_id for run in runs)
+            raise RunsStopped(
+                f"MLflow run(s) {ids} marked KILLED; the same command continues from the last "
+                "checkpoint"
+            ) from None
+        raise
     finally:
         for run in runs:
             log.info("MLflow run %s ended %s", run.run_id, run.status)
             log.info("open it: `make ui`, then %s", run.url)
         if population and runs:
             ids = ",".join(run.run_id for run in runs)
-            log.info("continue them together: python -m walkers.train 'resume=[%s]'", ids)
+            log.info(
+                "continue them together: python -m walkers.train 'resume=[%s]', or the same "
+                "command",
+                ids,
+            )
         elif runs and runs[0].status == tracking.KILLED:
-            log.info("continue it: python -m walkers.train resume=%s", runs[0].run_id)
+            log.info(
+                "continue it: python -m walkers.train resume=%s, or the same command",
+                runs[0].run_id,
+            )

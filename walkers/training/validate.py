@@ -8,6 +8,7 @@ keys at once. Every error is one line naming the key, the value and what is allo
 
 from __future__ import annotations
 
+import logging
 import re
 
 from omegaconf import DictConfig, OmegaConf
@@ -39,6 +40,8 @@ RULES: list[tuple[str, Allowed]] = [
 ]
 
 _MISSING = object()
+
+log = logging.getLogger("walkers")
 
 
 def _algo_values(cfg: DictConfig) -> dict:
@@ -166,6 +169,51 @@ def validate(cfg: DictConfig) -> None:
             "cuda",
             torch.cuda.is_available(),
             "auto or cpu on this machine (torch sees no CUDA device)",
+        )
+    warn_short_warmup(cfg)
+
+
+def check_command(cfg: DictConfig) -> None:
+    """What is checked of a command before its config can be read: ``resume=`` holds a run id
+    (or several), and every environment variable the config reads is set."""
+    check_resume_given(cfg.resume)
+    check_environment(cfg)
+
+
+def check_resume_given(resume) -> None:
+    """``resume=`` with nothing after it (``resume=$RUN_ID`` with the variable unset) is a
+    mistake, never a request for a fresh run."""
+    empty = resume is not None and (
+        (isinstance(resume, str) and not resume.strip())
+        or (OmegaConf.is_list(resume) and len(resume) == 0)
+    )
+    if empty:
+        raise ConfigError(
+            f"resume={resume!r} is empty: pass the MLflow run id to continue (resume=<run id>, "
+            "or resume=[<id>,<id>] for a population), or leave resume out to start a new run"
+        )
+
+
+def check_dataset_env(cfg: DictConfig, data) -> None:
+    """An offline run's dataset was recorded on the run's env."""
+    if data.env_id is not None and data.env_id != cfg.env.id:
+        raise ConfigError(
+            f"dataset={data.id!r} was recorded on {data.env_id}, not on env.id={cfg.env.id!r}: "
+            f"pass the env it was recorded on"
+        )
+
+
+def warn_short_warmup(cfg: DictConfig) -> None:
+    """A learning-rate warm-up longer than the run never reaches ``algo.lr`` (algo=dt)."""
+    warmup = OmegaConf.select(cfg, "algo.warmup_steps")
+    if warmup and warmup > cfg.total_steps:
+        log.warning(
+            "algo.warmup_steps=%d is more than total_steps=%d: the learning rate ends at %.0f%% "
+            "of algo.lr=%g; lower algo.warmup_steps (e.g. to total_steps / 10)",
+            warmup,
+            cfg.total_steps,
+            100 * cfg.total_steps / warmup,
+            cfg.algo.lr,
         )
 
 

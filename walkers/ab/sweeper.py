@@ -46,8 +46,7 @@ from walkers.ab.spec import StudySpec
 from walkers.analysis.sequential import A_BETTER, B_BETTER, EQUAL, Design, equal_line
 from walkers.cli import one_line_hydra_error
 from walkers.errors import ConfigError
-from walkers.training.provenance import DIVERGED_TAG, shareable
-from walkers.training.resume import SEED_IN_KEY
+from walkers.training.provenance import DIVERGED_TAG, SEED_IN_KEY, shareable
 from walkers.training.validate import validate
 from walkers.tuning.study_runs import end_jobs_runs
 

@@ -119,10 +119,7 @@ class PPO(Agent):
         device: str = "cpu",
         seed: int = 0,
     ):
-        if n_minibatches > n_steps:
-            raise ValueError(f"n_minibatches={n_minibatches} is more than n_steps={n_steps}")
-        if n_steps % num_envs:
-            raise ValueError(f"num_envs={num_envs} does not divide n_steps={n_steps}")
+        # n_minibatches <= n_steps and num_envs | n_steps: declared (PPOHyperparameters)
         self.device = resolve_device(device)
         self.lr, self.n_steps, self.n_epochs = lr, int(n_steps), int(n_epochs)
         self.num_envs = int(num_envs)  # envs stepped together: a rollout is a stream of each

@@ -3,7 +3,8 @@
     plan(cfg, overrides) -> Plan: new run(s) | run(s) to continue, each from its checkpoint
                                 | nothing (the command's runs FINISHED)
 
-Every way a run is continued is decided here, with :func:`walkers.training.resume.continuation`:
+Every way a run is continued is decided here, with :mod:`walkers.training.attempts` (the same
+command run again) and :mod:`walkers.training.resume` (a named run):
 ``resume=`` given, a multirun job or a study's job run again (its ``job_key``), a plain command
 run again (the same composed config, less what may change on resume), a population's members
 together, an offline run's data checked, a run from before a hyperparameter was declared. The
@@ -21,7 +22,7 @@ import numpy as np
 from omegaconf import DictConfig
 
 from walkers import tracking
-from walkers.training import resume
+from walkers.training import attempts, resume
 from walkers.training.checkpoints import Checkpoint
 from walkers.training.provenance import COMMAND_KEY_TAG
 from walkers.training.run_dataset import RunDataset, loader
@@ -62,14 +63,15 @@ def plan(cfg: DictConfig, overrides=()) -> Plan:
         validate(cfg)  # before the store is asked anything
     client = tracking.connect(cfg.tracking.uri)
     run_dataset = loader()
-    found = resume.continuation(client, cfg, overrides, run_dataset)
-    cfg = found.cfg
-    new_run_tags = {COMMAND_KEY_TAG: found.command_key}
-    if found.finished:
-        return Plan(cfg, client, [], [], None, new_run_tags, finished=found.finished)
-    if found.continued:  # a continued run's stored config, with the overrides it takes
+    attempt = attempts.of_command(client, cfg, run_dataset)
+    cfg, new_run_tags = attempt.cfg, {COMMAND_KEY_TAG: attempt.key}
+    if attempt.finished:
+        return Plan(cfg, client, [], [], None, new_run_tags, finished=attempt.finished)
+    if cfg.resume:  # a run's stored config, with the overrides it takes
+        cfg, members = resume.resumed(client, cfg, overrides, run_dataset)
         validate(cfg)
+    else:
+        members = [(member, None) for member in attempt.members]
     data = run_dataset(cfg) if is_offline(cfg) else None
-    members = [member for member, _ in found.members]
-    starts = [start for _, start in found.members]
-    return Plan(cfg, client, members, starts, data, new_run_tags)
+    starts = [start for _, start in members]
+    return Plan(cfg, client, [member for member, _ in members], starts, data, new_run_tags)

@@ -30,12 +30,22 @@ WORKER_TAG = "walkers.worker"
 POPULATION_TAG = "walkers.population"
 MEMBER_TAG = "walkers.population_member"
 #: Tag: what identifies a plain command's runs across attempts (the same command continues
-#: them: :func:`walkers.training.resume.command_key`).
+#: them: :func:`walkers.training.attempts.command_key`).
 COMMAND_KEY_TAG = "walkers.command_key"
 #: Tag of an earlier attempt's run that a job run again could not continue (it is FAILED).
 SUPERSEDED_TAG = "walkers.superseded"
 #: Tag of a run that ended FAILED because its updates diverged (the step): a rerun would too.
 DIVERGED_TAG = "walkers.diverged_at_step"
+
+
+#: In a job's key, what each of its runs replaces by its own seed (a study's population job:
+#: each member run is keyed as the single job of its seed would be).
+SEED_IN_KEY = "{seed}"
+
+
+def job_key_of_seed(job_key: str | None, seed: int) -> str | None:
+    """The key of the job's run of ``seed``: ``job_key`` with :data:`SEED_IN_KEY` filled in."""
+    return job_key.replace(SEED_IN_KEY, str(seed)) if job_key else job_key
 
 
 def new_run_tags(cfg: DictConfig, x_axis: str, data=None) -> dict[str, str]:

@@ -162,11 +162,11 @@ def export_runs(
         staging = Path(tmp) / "bundle"
         staging.mkdir()
         records = [_run_record(client, run, staging, checkpoints, fingerprint) for run in runs]
-        origin_of = {run.info.run_id: origin_of(run) for run in runs}
+        origins = {run.info.run_id: origin_of(run) for run in runs}
         for record in records:  # a copy's parent is named as its origin, as the run is
             parent = record["tags"].get("mlflow.parentRunId")
-            if parent in origin_of:
-                record["tags"]["mlflow.parentRunId"] = origin_of[parent]
+            if parent in origins:
+                record["tags"]["mlflow.parentRunId"] = origins[parent]
         for record in records:
             if not record["fingerprint"]:
                 record["fingerprint"] = _same_training(record, recorded.get(record["origin"]))

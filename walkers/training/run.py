@@ -3,8 +3,9 @@
 :class:`TrainingRun` is the one object the training command, the loops' book and resume talk to
 about a run; what a training run says to MLflow goes through it (the session only connects the
 client; ``make lint`` keeps the book and the loops from importing :mod:`walkers.tracking`). It
-opens the run (new, or the resumed one reopened), logs and uploads, and :func:`ending` gives it
-its final status on every way out; which run continues, and from which checkpoint, is
+opens the run (new, or the resumed one reopened), holds its lock while it trains, logs and
+uploads, and :func:`ending` gives it its final status on every way out; it finds a run's last
+checkpoint; which run continues is :mod:`walkers.training.attempts`' and
 :mod:`walkers.training.resume`'s. :class:`RunFolder` is the one place the local layout is spelled::
 
     <work_dir>/runs/<run id>/

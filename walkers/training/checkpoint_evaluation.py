@@ -22,8 +22,7 @@ from omegaconf import DictConfig
 from walkers import tracking
 from walkers.errors import ConfigError
 from walkers.seeding import eval_start_seeds, held_out_start_seeds
-from walkers.training import checkpoints
-from walkers.training.checkpoints import agent_from_checkpoint
+from walkers.training.checkpoints import Checkpoint, agent_from_checkpoint
 from walkers.training.envs import make_env
 from walkers.training.greedy_episodes import record_episodes
 from walkers.training.run import RunFolder, TrainingRun
@@ -76,10 +75,10 @@ def evaluate(cfg: DictConfig) -> dict:
     if cfg.run_id:
         client = tracking.connect(cfg.tracking.uri)
         tracking.require_run(client, cfg.run_id, cfg.tracking.uri)
-    state = checkpoints.load(fetch_checkpoint(cfg, client))
-    env = make_env(state["config"]["env"], shaping=False, render_mode=cfg.render)
+    checkpoint = Checkpoint.read(fetch_checkpoint(cfg, client))
+    env = make_env(checkpoint.config["env"], shaping=False, render_mode=cfg.render)
     try:
-        run_cfg, agent = agent_from_checkpoint(state, env, cfg.device)
+        run_cfg, agent = agent_from_checkpoint(checkpoint, env, cfg.device)
         if cfg.target_return is not None:
             if not agent.return_conditioned:
                 raise ConfigError(

@@ -107,7 +107,14 @@ class Checkpoint:
     @classmethod
     def read(cls, path: str | os.PathLike) -> Checkpoint:
         """The checkpoint at ``path``; a damaged or foreign file raises :class:`CheckpointError`."""
-        return cls.of(load(path))
+        state = load(path)
+        missing = [f.name for f in dataclasses.fields(cls) if f.name not in state]
+        required = [name for name in missing if name not in ("cuda_rng", "env_rng")]
+        if required:
+            raise CheckpointError(
+                f"checkpoint {str(path)!r} holds no {required[0]}: not a training run's checkpoint"
+            )
+        return cls.of(state)
 
     @classmethod
     def of(cls, state: dict) -> Checkpoint:

@@ -31,9 +31,8 @@ from walkers.agents.base import Agent
 from walkers.data.episodes import Episode
 from walkers.data.replay import first_steps, replay_episodes
 from walkers.errors import CheckpointError, ConfigError
-from walkers.training import checkpoints
 from walkers.training.checkpoint_evaluation import fetch_checkpoint
-from walkers.training.checkpoints import agent_from_checkpoint
+from walkers.training.checkpoints import Checkpoint, agent_from_checkpoint
 from walkers.training.envs import make_env
 from walkers.training.run import RunFolder
 
@@ -52,7 +51,7 @@ class Behaviour:
     label: str
     agent: Agent | None
     env_cfg: DictConfig
-    state: dict | None = None  # the checkpoint (replay=true reads its buffer)
+    checkpoint: Checkpoint | None = None  # its checkpoint (replay=true reads its buffer)
     run_id: str | None = None  # the MLflow run it comes from (random, a .pt file: None)
 
 
@@ -123,14 +122,14 @@ def load_behaviours(cfg: DictConfig, client) -> list[Behaviour]:
         name = "last" if cfg.replay else cfg.checkpoint
         source = {"run_id": run_id, "checkpoint": name, "work_dir": cfg.work_dir}
         path = fetch_checkpoint(OmegaConf.create(source), client)
-        state = checkpoints.load(path)
-        env = make_env(state["config"]["env"], shaping=False)
+        checkpoint = Checkpoint.read(path)
+        env = make_env(checkpoint.config["env"], shaping=False)
         try:
-            run_cfg, agent = agent_from_checkpoint(state, env, cfg.device)
+            run_cfg, agent = agent_from_checkpoint(checkpoint, env, cfg.device)
         finally:
             env.close()
         label = f"{run_cfg.algo.name} run {run_id} ({Path(path).name})" if run_id else str(path)
-        behaviours.append(Behaviour(label, agent, run_cfg.env, state, run_id))
+        behaviours.append(Behaviour(label, agent, run_cfg.env, checkpoint, run_id))
     env_ids = {b.env_cfg.id for b in behaviours}
     if cfg.get("env") is not None:
         env_ids.add(cfg.env.id)
@@ -248,13 +247,13 @@ def replay_buffer(b: Behaviour, cfg: DictConfig) -> dict:
     """The replay buffer ``b``'s run saved: in its logged ``last.pt`` (``save_buffer=true``), else
     in the resume checkpoint the run keeps in ``work_dir`` on the machine it trained on; cut to its
     first ``replay_steps`` env steps if asked."""
-    state = b.state
-    if "data" not in state["agent"].get("buffer", {}) and b.run_id is not None:
+    checkpoint = b.checkpoint
+    if "data" not in checkpoint.agent.get("buffer", {}) and b.run_id is not None:
         local = RunFolder.of(cfg.work_dir, b.run_id).resume_checkpoint
         if local.is_file():
             log.info("%s: the replay buffer of its resume checkpoint %s", b.label, local)
-            state = checkpoints.load(local)
-    buffer = state["agent"].get("buffer", {})
+            checkpoint = Checkpoint.read(local)
+    buffer = checkpoint.agent.get("buffer", {})
     if "data" not in buffer:
         raise CheckpointError(
             f"{b.label} has no replay buffer in it: train the run with save_buffer=true (its "
@@ -263,7 +262,7 @@ def replay_buffer(b: Behaviour, cfg: DictConfig) -> dict:
     if cfg.replay_steps is None:
         return buffer
     try:
-        return first_steps(buffer, cfg.replay_steps, state["agent"]["steps"])
+        return first_steps(buffer, cfg.replay_steps, checkpoint.agent["steps"])
     except ValueError as e:
         raise ConfigError(f"replay_steps={cfg.replay_steps!r} is not allowed: {e}") from None
 

@@ -19,6 +19,7 @@ from pathlib import Path
 from walkers import tracking
 from walkers.ab.rounds import Scores, Standing
 from walkers.ab.spec import StudySpec
+from walkers.analysis import formatting
 from walkers.analysis.arms import arm_config, run_params
 from walkers.analysis.sequential import Design
 from walkers.errors import ConfigError
@@ -142,11 +143,7 @@ def cpu_hours(runs: list, spec: StudySpec) -> dict[str, tuple[float, int, int]]:
 
 def cpu_hours_line(hours: dict[str, tuple[float, int, int]]) -> str:
     """``CPU-hours of the finished runs: td3 12.31, reinforce 1.20 (4 of 5 runs counted)``."""
-    parts = [
-        f"{arm} {total:.3g}"
-        + (f" ({counted} of {finished} runs counted)" if counted < finished else "")
-        for arm, (total, counted, finished) in hours.items()
-    ]
+    parts = [f"{arm} {formatting.cpu_hours(*counts)}" for arm, counts in hours.items()]
     return "CPU-hours of the finished runs: " + (", ".join(parts) if parts else "none yet")
 
 

@@ -16,6 +16,7 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 from walkers.agents.declarations.schemas import declared_since
+from walkers.analysis import formatting
 from walkers.tracking import ABSENT, BUDGET_TAG, differing_keys
 
 #: Config keys (MLflow params; a trailing "." is the whole subtree) that do not make an arm:
@@ -204,13 +205,9 @@ def _configs_of(runs: Sequence, exclude: Sequence[str]) -> list[tuple[dict[str, 
     return list(by_config.values())
 
 
-def _runs(n: int) -> str:
-    return f"{n} run" if n == 1 else f"{n} runs"
-
-
 def split_note(group: str, arms: Sequence[Arm], keys: Sequence[str]) -> str:
     """The report's line for a group that holds several configurations."""
-    listed = "; ".join(f"{a.name}: {_runs(len(a.runs))}" for a in arms)
+    listed = "; ".join(f"{a.name}: {formatting.runs(len(a.runs))}" for a in arms)
     return (
         f"{group}: {len(arms)} configurations, compared as separate arms and never pooled "
         f"(they differ in {', '.join(keys)}): {listed}"
@@ -260,7 +257,7 @@ def build_arms(
         lacking = {r.info.run_id for r in runs if any(k not in run_params(r) for k in group_by)}
         if lacking:
             left_out.append(
-                f"{_runs(len(lacking))} without {' or '.join(group_by)} in their config "
+                f"{formatting.runs(len(lacking))} without {' or '.join(group_by)} in their config "
                 f"(run ids {', '.join(sorted(lacking))})"
             )
         runs = [r for r in runs if r.info.run_id not in lacking]

@@ -13,6 +13,8 @@ import json
 import math
 from pathlib import Path
 
+from walkers.analysis import formatting
+from walkers.analysis.formatting import interval, number
 from walkers.analysis.plots import plot_group_by, plot_learning_curves, plot_scores
 from walkers.analysis.power import MAX_SEEDS, TARGET
 from walkers.analysis.results import (
@@ -35,25 +37,25 @@ def _normalized_lines(r, score: str) -> list[str]:
             return []
         return [
             "",
-            f"{r.algo}: final normalized score {_num(r.normalized_score_mean)} (mean over "
+            f"{r.algo}: final normalized score {number(r.normalized_score_mean)} (mean over "
             f"seeds; 0 = a random policy, 100 = the behaviour policy of {r.dataset}).",
         ]
     random, expert, source = refs
     scale = (
-        f"the env's references (conf/env: random {_num(random)}, expert {_num(expert)})"
+        f"the env's references (conf/env: random {number(random)}, expert {number(expert)})"
         if source == "env"
-        else f"the dataset's (random {_num(random)}, behaviour {_num(expert)})"
+        else f"the dataset's (random {number(random)}, behaviour {number(expert)})"
     )
-    ci = f" [{_num(low)}, {_num(high)}]" if low is not None else ""
+    ci = f" [{number(low)}, {number(high)}]" if low is not None else ""
     line = (
-        f"{r.label}: normalized score {_num(point)}{ci} (IQM of `{score}`, "
-        f"{_num(r.iqm[0])}, and its CI, on {scale})"
+        f"{r.label}: normalized score {number(point)}{ci} (IQM of `{score}`, "
+        f"{number(r.iqm[0])}, and its CI, on {scale})"
     )
     if r.runs[0].behaviour_return is not None:
         behaviour = r.runs[0].behaviour_return
         line += (
-            f"; the data's behaviour policy: return {_num(behaviour)}, "
-            f"normalized score {_num(r.normalized(behaviour))}"
+            f"; the data's behaviour policy: return {number(behaviour)}, "
+            f"normalized score {number(r.normalized(behaviour))}"
         )
     return ["", line + "."]
 
@@ -65,26 +67,14 @@ def _per_target_lines(r) -> list[str]:
     cells = []
     for target, (point, low, high) in r.per_target.items():
         score = r.normalized(point)
-        normalized = "" if score is None else f", normalized {_num(score)}"
-        cells.append(f"asked for {_num(float(target))}: {_interval(point, low, high)}{normalized}")
+        normalized = "" if score is None else f", normalized {number(score)}"
+        cells.append(f"asked for {number(float(target))}: {interval(point, low, high)}{normalized}")
     return [
         "",
         f"{r.label} by target return (the IQM of the final returns and its CI): "
         + "; ".join(cells)
         + ".",
     ]
-
-
-def _num(x: float) -> str:
-    if x is None or not math.isfinite(x):
-        return "n/a"
-    return f"{x:,.0f}" if abs(x) >= 100 else f"{x:.3g}"
-
-
-def _interval(point: float, low: float, high: float) -> str:
-    if math.isnan(low):
-        return f"{_num(point)} (too few seeds for a CI)"
-    return f"{_num(point)} [{_num(low)}, {_num(high)}]"
 
 
 def _steps(x: float | None, axis: str = ENV_STEPS) -> str:
@@ -119,7 +109,7 @@ def _clause(pair: PairResult, confidence: float) -> str:
         pair = pair.flipped()
     name = QUANTITY_NAMES[pair.quantity]
     evidence = (
-        f"P({pair.a} > {pair.b}) = {_interval(*pair.p_improvement)}, "
+        f"P({pair.a} > {pair.b}) = {interval(*pair.p_improvement)}, "
         f"Mann-Whitney p = {pair.p_value:.2g}"
     )
     power = pair.power
@@ -160,7 +150,7 @@ def verdict(c: Comparison) -> str:
     lines = [
         f"On {c.env_id} ({budgets_text(c)}; seeds: {seed_counts}),"
         f" ranked by the IQM of {c.score}: "
-        + ", ".join(f"{r.algo} {_interval(*r.iqm)}" for r in ranked)
+        + ", ".join(f"{r.algo} {interval(*r.iqm)}" for r in ranked)
         + (f" ({level} CIs)." if any(not math.isnan(r.iqm[1]) for r in ranked) else ".")
     ]
     pairs = [p if rank[p.a] < rank[p.b] else p.flipped() for p in c.pairs]
@@ -176,7 +166,7 @@ def verdict(c: Comparison) -> str:
             )
         lines.append(line)
     reached = [f"{r.algo} {r.as_dict()['threshold_reached']}/{len(r.runs)}" for r in c.algos]
-    lines.append(f"Seeds reaching the threshold {_num(c.threshold)}: {', '.join(reached)}.")
+    lines.append(f"Seeds reaching the threshold {number(c.threshold)}: {', '.join(reached)}.")
     return " ".join(lines)
 
 
@@ -217,14 +207,14 @@ def _pairwise_section(c: Comparison, level: str) -> list[str]:
     for p in c.pairs:
         w = p.power
         powers = (
-            f"{_num(w.difference)} ({w.effect_size:+.2f}) | {w.power:.0%} "
+            f"{number(w.difference)} ({w.effect_size:+.2f}) | {w.power:.0%} "
             f"| {w.seeds if w.seeds is not None else f'> {MAX_SEEDS}'} "
-            f"| {w.power_for_smallest:.0%} (difference {_num(w.smallest)})"
+            f"| {w.power_for_smallest:.0%} (difference {number(w.smallest)})"
             if w is not None
             else "- | - | - | -"
         )
         out.append(
-            f"| {p.a} vs {p.b} | {QUANTITY_NAMES[p.quantity]} | {_interval(*p.p_improvement)} "
+            f"| {p.a} vs {p.b} | {QUANTITY_NAMES[p.quantity]} | {interval(*p.p_improvement)} "
             f"| {p.p_value:.3g} | {powers} |"
         )
     return out
@@ -247,11 +237,11 @@ def _published_section(c: Comparison) -> list[str]:
     for fig in c.published:
         std = f" ± {fig['std']:,}" if fig.get("std") is not None else ""  # as published
         measured = "; ".join(
-            f"{r.algo} {_interval(*r.iqm)}" for r in c.algos if r.algorithm == fig["algo"]
+            f"{r.algo} {interval(*r.iqm)}" for r in c.algos if r.algorithm == fig["algo"]
         )
         out.append(
             f"| {fig['algo']} | {_version(fig.get('env_version'), c.env_id)} "
-            f"| {_num(fig.get('steps'))} "
+            f"| {number(fig.get('steps'))} "
             f"| {fig['return']:,}{std} (published) | {fig.get('source', '?')} | {measured} |"
         )
     return out
@@ -271,20 +261,12 @@ def _title(c: Comparison) -> str:
     return f"# {' vs '.join(r.algo for r in c.algos)} on {c.env_id}"
 
 
-def _cpu_hours(d: dict) -> str:
-    """The arm's CPU-hours, saying so when only some of its runs counted them."""
-    hours, counted, seeds = d["cpu_hours"], d["cpu_hours_runs"], d["seeds"]
-    if not counted:
-        return "-"
-    return f"{hours:.3g}" if counted == seeds else f"{hours:.3g} ({counted} of {seeds} runs)"
-
-
 def markdown(c: Comparison, source: str) -> str:
     level = f"{c.confidence:.0%}"
     out = [_title(c), "", verdict(c), ""]
     out += [
         f"Runs from {source}; budget {budgets_text(c)}; score `{c.score}`; threshold "
-        f"{_num(c.threshold)}. IQM = interquartile mean; CIs are {level} percentile bootstraps "
+        f"{number(c.threshold)}. IQM = interquartile mean; CIs are {level} percentile bootstraps "
         "over seeds (stratified per env); P(A > B) is the probability that a random seed of A "
         "beats a random seed of B (Mann-Whitney U / nm), after Agarwal et al. 2021. A verdict "
         f"needs the CI of P(A > B) to exclude 0.5 and Mann-Whitney p < {1 - c.confidence:.2g}.",
@@ -298,10 +280,11 @@ def markdown(c: Comparison, source: str) -> str:
     for r in c.algos:
         d = r.as_dict()
         out.append(
-            f"| {r.label} | {d['seeds']} | {_num(d['score_mean'])} ± {_num(d['score_std'])} "
-            f"| {_interval(*r.iqm)} | {_num(d['auc_mean'])} ± {_num(d['auc_std'])} "
+            f"| {r.label} | {d['seeds']} | {number(d['score_mean'])} ± {number(d['score_std'])} "
+            f"| {interval(*r.iqm)} | {number(d['auc_mean'])} ± {number(d['auc_std'])} "
             f"| {_steps(d['steps_to_threshold_median'], r.x_axis)} "
-            f"| {d['threshold_reached']}/{d['seeds']} | {_cpu_hours(d)} |"
+            f"| {d['threshold_reached']}/{d['seeds']} "
+            f"| {formatting.cpu_hours(d['cpu_hours'], d['cpu_hours_runs'], d['seeds'])} |"
         )
     out += _published_section(c)
     out += _arms_section(c)
@@ -344,8 +327,8 @@ def markdown(c: Comparison, source: str) -> str:
         for run in r.runs:
             s = run.summary
             out.append(
-                f"| {r.algo} | {run.seed} | `{run.named}` | {_num(s[c.score])} "
-                f"| {_num(s['final/auc'])} | {_steps(s['final/steps_to_threshold'], r.x_axis)} |"
+                f"| {r.algo} | {run.seed} | `{run.named}` | {number(s[c.score])} "
+                f"| {number(s['final/auc'])} | {_steps(s['final/steps_to_threshold'], r.x_axis)} |"
             )
     if c.references:
         out += ["", "## Arms from references", ""]

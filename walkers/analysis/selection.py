@@ -11,7 +11,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from walkers import tracking
-from walkers.analysis import stats
+from walkers.analysis import formatting, stats
 from walkers.analysis.results import AXIS_NAMES, SeedRun
 from walkers.errors import ConfigError
 from walkers.tracking import ENV_STEPS, GRADIENT_STEPS, KIND_TAG, ORIGIN_TAG
@@ -28,10 +28,6 @@ def x_axis(run) -> str:
 def _budget(run) -> int | None:
     value = tracking.total_steps_of(run)
     return int(value) if value is not None and value.isdigit() else None
-
-
-def _runs(n: int) -> str:
-    return f"{n} run" if n == 1 else f"{n} runs"
 
 
 def _most_common(values) -> object:
@@ -66,7 +62,7 @@ def select_runs(
     other_envs = Counter(r.data.tags.get("env") for r in wanted if r.data.tags.get("env") != env_id)
     if other_envs:
         listed = ", ".join(f"{env}: {n}" for env, n in sorted(other_envs.items(), key=str))
-        notes.append(f"{_runs(sum(other_envs.values()))} on other envs ({listed})")
+        notes.append(f"{formatting.runs(sum(other_envs.values()))} on other envs ({listed})")
     on_env = [r for r in wanted if r.data.tags.get("env") == env_id]
     unfinished = [r for r in on_env if r.info.status != tracking.FINISHED]
     for r in unfinished:
@@ -76,7 +72,7 @@ def select_runs(
         )
     pruned = [r for r in on_env if tracking.PRUNED_TAG in r.data.tags]
     if pruned:
-        notes.append(f"{_runs(len(pruned))} of sweep trials stopped early by pruning")
+        notes.append(f"{formatting.runs(len(pruned))} of sweep trials stopped early by pruning")
     finished = [
         r
         for r in on_env
@@ -89,7 +85,7 @@ def select_runs(
         del other[dataset]
         if other:
             notes.append(
-                f"{_runs(sum(other.values()))} trained on another dataset than {dataset} "
+                f"{formatting.runs(sum(other.values()))} trained on another dataset than {dataset} "
                 f"({_listed(other, 'dataset')})"
             )
         finished = [
@@ -190,7 +186,7 @@ def _one_budget(runs: list, given: int | None, axis: str, notes: list[str], algo
     if other:
         whose = f" of {algo}" if algo else ""
         notes.append(
-            f"{_runs(sum(other.values()))}{whose} with another budget than {chosen} "
+            f"{formatting.runs(sum(other.values()))}{whose} with another budget than {chosen} "
             f"{AXIS_NAMES[axis]} ({_listed(other, 'total_steps')})"
         )
     return chosen, [r for r in runs if _budget(r) == chosen]

@@ -23,8 +23,9 @@ import numpy as np  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
 
 from walkers import CONF_DIR  # noqa: E402
-from walkers.analysis import stats, suite  # noqa: E402
+from walkers.analysis import formatting, stats  # noqa: E402
 from walkers.analysis.comparison import build_comparison, compare, publish, runs_place  # noqa: E402
+from walkers.analysis.formatting import header, interval, one_decimal  # noqa: E402
 from walkers.analysis.results import AXIS_NAMES, AlgoResult, Comparison  # noqa: E402
 from walkers.errors import ConfigError  # noqa: E402
 from walkers.metrics import normalized_score  # noqa: E402
@@ -149,16 +150,6 @@ def _normalized(comparisons, tasks, kind: str) -> tuple[dict, dict, dict]:
     )
 
 
-def _header(first: str, columns) -> list[str]:
-    """A markdown table's first two lines."""
-    columns = [first, *columns]
-    return ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
-
-
-def _ci(point: float, low: float, high: float) -> str:
-    return f"{point:.1f} [{low:.1f}, {high:.1f}]"
-
-
 def write_suite(comparisons, tasks: dict[str, Task], cfg: DictConfig, out: Path, kind: str) -> str:
     out.mkdir(parents=True, exist_ok=True)
     boot = {
@@ -170,9 +161,9 @@ def write_suite(comparisons, tasks: dict[str, Task], cfg: DictConfig, out: Path,
     if len(scores) < 1:
         raise ConfigError(f"no arm ran on every {kind} of {list(tasks)}: nothing to aggregate")
     correction = f"Holm's step-down method over every pair on every {kind}"
-    aggregates = {arm: suite.aggregate_cis(per_task, **boot) for arm, per_task in scores.items()}
+    aggregates = {arm: stats.aggregate_cis(per_task, **boot) for arm, per_task in scores.items()}
     per_task = {
-        arm: {t: suite.aggregate_cis({t: x}, **boot)["IQM"] for t, x in by_task.items()}
+        arm: {t: stats.aggregate_cis({t: x}, **boot)["IQM"] for t, x in by_task.items()}
         for arm, by_task in scores.items()
     }
     pairs = list(itertools.combinations(scores, 2))
@@ -181,10 +172,10 @@ def write_suite(comparisons, tasks: dict[str, Task], cfg: DictConfig, out: Path,
         for a, b in pairs
         for t in tasks
     }
-    adjusted = suite.holm(raw_p)
+    adjusted = stats.holm(raw_p)
     alpha = 1 - cfg.confidence
     improvement = {
-        f"{a} vs {b}": suite.average_improvement(scores[a], scores[b], **boot) for a, b in pairs
+        f"{a} vs {b}": stats.average_improvement(scores[a], scores[b], **boot) for a, b in pairs
     }
     what = (
         "per env (`conf/env/*.yaml` scores)"
@@ -200,7 +191,7 @@ def write_suite(comparisons, tasks: dict[str, Task], cfg: DictConfig, out: Path,
         f"{cfg.confidence:.0%}.",
         "",
         *_budget_lines(results),
-        *_header(kind, ["random", "reference"] + (["the data's own"] if kind == "dataset" else [])),
+        *header(kind, ["random", "reference"] + (["the data's own"] if kind == "dataset" else [])),
     ]
     for t in tasks.values():
         own = f" {t.own:.1f} |" if kind == "dataset" and t.own is not None else ""
@@ -209,20 +200,28 @@ def write_suite(comparisons, tasks: dict[str, Task], cfg: DictConfig, out: Path,
         "",
         "## Aggregates (normalized)",
         "",
-        *_header("arm", [*suite.AGGREGATES, "runs", "CPU-hours, runs summed"]),
+        *header("arm", [*stats.AGGREGATES, "runs", "CPU-hours, runs summed"]),
     ]
     for arm, agg in aggregates.items():
-        cells = [_ci(*v) for v in agg.values()]
+        cells = [interval(*v, written=one_decimal) for v in agg.values()]
         runs = sum(len(x) for x in scores[arm].values())
-        lines.append(f"| {arm} | " + " | ".join(cells) + f" | {runs} | {_cpu(results[arm])} |")
+        lines.append(
+            f"| {arm} | "
+            + " | ".join(cells)
+            + f" | {runs} | {formatting.cpu_hours(*_cpu_hours(results[arm]), digits='.2f')} |"
+        )
     lines += [
         "",
         f"## Per {kind} (normalized IQM [CI])",
         "",
-        *_header("arm", tasks),
+        *header("arm", tasks),
     ]
     for arm in scores:
-        lines.append(f"| {arm} | " + " | ".join(_ci(*per_task[arm][t]) for t in tasks) + " |")
+        lines.append(
+            f"| {arm} | "
+            + " | ".join(interval(*per_task[arm][t], written=one_decimal) for t in tasks)
+            + " |"
+        )
     if kind == "dataset":
         own = [f"{t.own:.1f}" if t.own is not None else "-" for t in tasks.values()]
         lines.append("| the data's own | " + " | ".join(own) + " |")
@@ -234,7 +233,7 @@ def write_suite(comparisons, tasks: dict[str, Task], cfg: DictConfig, out: Path,
         f"P(A > B) averaged over {kind}s; per-{kind} Mann-Whitney p, corrected for "
         f"{len(raw_p)} tests by {correction} (a difference needs adjusted p < {alpha:.2g}).",
         "",
-        *_header("pair", [f"P(A > B) over {kind}s", kind, "p", "Holm-adjusted p", "verdict"]),
+        *header("pair", [f"P(A > B) over {kind}s", kind, "p", "Holm-adjusted p", "verdict"]),
     ]
     for a, b in pairs:
         p, lo, hi = improvement[f"{a} vs {b}"]
@@ -302,11 +301,6 @@ def _cpu_hours(by_task: dict[str, AlgoResult]) -> tuple[float, int, int]:
     return sum(h for h, _ in counted), sum(n for _, n in counted), runs
 
 
-def _cpu(by_task: dict[str, AlgoResult]) -> str:
-    hours, counted, runs = _cpu_hours(by_task)
-    return f"{hours:.2f}" + (f" ({counted} of {runs} runs counted)" if counted < runs else "")
-
-
 def _per_target_lines(results, tasks: dict[str, Task]) -> list[str]:
     """Return-conditioned arms (DT): the normalized IQM [CI] at each target return, per task."""
     lines = []
@@ -320,7 +314,7 @@ def _per_target_lines(results, tasks: dict[str, Task]) -> list[str]:
             "",
             f"## {arm} per target return (normalized IQM [CI])",
             "",
-            *_header("target", tasks),
+            *header("target", tasks),
         ]
         for target in targets:
             cells = []
@@ -330,7 +324,9 @@ def _per_target_lines(results, tasks: dict[str, Task]) -> list[str]:
                     cells.append("-")
                     continue
                 point, low, high = (float(task.normalize(v)) for v in found)
-                cells.append(_ci(point, min(low, high), max(low, high)))  # the map may reverse
+                cells.append(
+                    interval(point, min(low, high), max(low, high), written=one_decimal)
+                )  # the map may reverse
             lines.append(f"| {float(target):g} | " + " | ".join(cells) + " |")
     return lines
 
@@ -341,7 +337,7 @@ def _plots(scores, curves, out: Path, axis: str, confidence: float) -> None:
     for arm, per_task in scores.items():
         ax.plot(
             taus,
-            suite.performance_profile(per_task, taus),
+            stats.performance_profile(per_task, taus),
             label=arm,
         )
     ax.set(
@@ -355,7 +351,7 @@ def _plots(scores, curves, out: Path, axis: str, confidence: float) -> None:
     for arm, per_task in curves.items():
         last = min(steps[-1] for runs in per_task.values() for steps, _ in runs)
         grid = np.linspace(0, last, 50)
-        point, low, high = suite.iqm_curve(per_task, grid, confidence=confidence)
+        point, low, high = stats.iqm_curve(per_task, grid, confidence=confidence)
         ax.plot(grid, point, label=arm)
         ax.fill_between(grid, low, high, alpha=0.2)
     ax.set(

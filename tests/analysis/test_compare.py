@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from tests.conftest import TINY, all_runs, compose_cfg, new_store, one_line_error, run_cli
-from walkers.analysis.comparison import compare, compare_groups
+from walkers.analysis.comparison import compare
+from walkers.analysis.pairwise import compare_groups
 from walkers.analysis.report import verdict
 from walkers.analysis.results import SeedRun
 from walkers.analysis.selection import resolve_dataset

@@ -13,7 +13,8 @@ from omegaconf import OmegaConf
 
 from tests.conftest import compose_cfg
 from walkers.analysis import arms
-from walkers.analysis.comparison import compare_groups, mlflow_key
+from walkers.analysis.comparison import mlflow_key
+from walkers.analysis.pairwise import compare_groups
 from walkers.analysis.report import PUBLISHED_CAVEAT, markdown
 from walkers.analysis.results import SeedRun
 from walkers.analysis.selection import published_figures

@@ -17,8 +17,8 @@ from collections.abc import Mapping
 from pathlib import Path
 
 from walkers import tracking
-from walkers.ab.rounds import Scores, Standing
-from walkers.ab.spec import StudySpec
+from walkers.ab.rounds import Standing
+from walkers.ab.spec import Scores, StudySpec
 from walkers.analysis import formatting
 from walkers.analysis.arms import arm_config, run_params
 from walkers.analysis.sequential import Design

@@ -13,19 +13,16 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
-from walkers.ab.spec import StudySpec
+from walkers.ab.spec import Scores, StudySpec
 from walkers.analysis.references import REFERENCE_KEY, check_like_for_like
 from walkers.errors import ConfigError
 from walkers.tracking.bundles import BundleRuns
-
-#: (arm, env) -> {seed: score}
-Scores = dict[tuple[str, str], dict[int, float]]
 
 
 def reference_scores(spec: StudySpec, shared: Mapping[str, dict]) -> Scores:
     """The scores of every reference arm on every env, checked; ``shared``: env -> the params
     the study's jobs share there (its command line and the env, no arm's overrides)."""
-    scores: Scores = {}
+    scores: dict[tuple[str, str], dict[int, float]] = {}
     for arm in spec.arms:
         if arm.reference is None:
             continue

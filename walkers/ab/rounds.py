@@ -7,7 +7,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass
 
-from walkers.ab.spec import StudySpec
+from walkers.ab.spec import Scores, StudySpec
 from walkers.analysis.sequential import (
     Question,
     answer,
@@ -17,7 +17,6 @@ from walkers.analysis.sequential import (
 from walkers.metrics import normalized_score
 
 #: Finished scores: (arm, env) -> {seed: score}
-Scores = Mapping[tuple[str, str], Mapping[int, float]]
 
 
 @dataclass

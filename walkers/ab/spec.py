@@ -30,6 +30,9 @@ from walkers.analysis.sequential import Design, Question
 from walkers.errors import ConfigError
 from walkers.tracking.names import study_job_key, study_jobs_prefix, study_of_job_key
 
+#: A study's finished scores: (arm, env) -> {seed: score}, as its rounds read them.
+Scores = Mapping[tuple[str, str], Mapping[int, float]]
+
 #: Scores a study may decide on (the aggregate averages normalized returns).
 SCORES = ("final/return_mean", "final/return_last10", "final/auc")
 _NAME = re.compile(r"^[A-Za-z0-9_.-]+$")

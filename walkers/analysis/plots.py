@@ -166,3 +166,38 @@ def plot_group_by(c: Comparison, path: Path) -> Path:
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path
+
+
+def suite_plots(scores, curves, out: Path, axis: str, confidence: float) -> None:
+    """A suite's performance profile and sample-efficiency curves (IQM with its band)."""
+    taus = np.linspace(-10, 150, 161)
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for arm, per_task in scores.items():
+        ax.plot(
+            taus,
+            stats.performance_profile(per_task, taus),
+            label=arm,
+        )
+    ax.set(
+        xlabel="normalized score tau", ylabel="fraction of runs > tau", title="Performance profile"
+    )
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(out / "performance_profile.png", dpi=100)
+    plt.close(fig)
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for arm, per_task in curves.items():
+        last = min(steps[-1] for runs in per_task.values() for steps, _ in runs)
+        grid = np.linspace(0, last, 50)
+        point, low, high = stats.iqm_curve(per_task, grid, confidence=confidence)
+        ax.plot(grid, point, label=arm)
+        ax.fill_between(grid, low, high, alpha=0.2)
+    ax.set(
+        xlabel=axis,
+        ylabel="IQM normalized eval return",
+        title=f"Sample efficiency ({confidence:.0%} CI)",
+    )
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(out / "sample_efficiency.png", dpi=100)
+    plt.close(fig)

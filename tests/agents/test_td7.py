@@ -97,36 +97,6 @@ def test_targets_move_by_hard_copies_every_target_update_rate_updates():
     assert agent.value_clip.low < agent.value_clip.high
 
 
-def test_a_member_updates_as_the_single_agent_of_its_seed():
-    """Member 1 of seeds (5, 6) against seed 6 alone, fed the same transitions: the same
-    initial weights, priorities, batches and noise, so the same critics after 60 updates (3
-    hard target copies) to float rounding. (Through a whole training the returns part sooner
-    than TD3's: rounding at 1e-8 reaches the third pendulum episode at 1e-3, so this is held
-    here, update by update, rather than end to end as in tests/agents/test_population.py.)"""
-    settings = tiny_td7(target_update_rate=20) | {"learning_starts": 0, "buffer_size": 500}
-    small = defaults_for(TD7, hidden_sizes=[32, 32], batch_size=32, **settings)
-    pair = TD7(3, [-2.0], [2.0], population=2, seed=5, **small)
-    alone = TD7(3, [-2.0], [2.0], population=1, seed=6, **small)
-    rng = np.random.default_rng(0)
-    for t in range(200):
-        obs, nxt, other, other_next = rng.normal(size=(4, 3)).astype(np.float32)
-        action, reward = rng.uniform(-2, 2, 1).astype(np.float32), float(rng.normal())
-        mine = Transition(obs, action, reward, nxt, t % 50 == 49, False)
-        pair.observe_population([Transition(other, action, reward, other_next, False, False), mine])
-        alone.observe(mine)
-    for _ in range(60):
-        together, single = pair.update(), alone.update()
-        assert together["loss/critic"][1].item() == pytest.approx(single["loss/critic"][0].item())
-    members = {"critic": slice(2, 4), "critic_target": slice(2, 4), "actor": slice(1, 2)}
-    for module, member in (members | {"encoder": slice(1, 2)}).items():
-        mine = zip(
-            getattr(pair, module).parameters(), getattr(alone, module).parameters(), strict=True
-        )
-        for both, one in mine:
-            torch.testing.assert_close(both[member], one, rtol=1e-5, atol=1e-6)
-    torch.testing.assert_close(pair.buffer.priority[1], alone.buffer.priority[0])
-
-
 def tiny_td7(**settings) -> dict:
     return {"zs_dim": 8, "encoder_hidden_sizes": [16, 16], "target_update_rate": 3} | settings
 
@@ -238,19 +208,3 @@ def test_updates_match_the_authors_td7(monkeypatch):
     for ours, k, theirs in same_layers(agent, ref):
         for got, want in ((ours.weight[k], theirs.weight.T), (ours.bias[k, 0], theirs.bias)):
             np.testing.assert_allclose(got.detach(), want.detach(), rtol=1e-4, atol=1e-5)
-
-
-def test_compiled_losses_follow_the_eager_update_through_hard_copies():
-    """``compile=true`` runs TD7's three losses (encoder, critics, actor) through torch.compile:
-    the same updates, including two hard target copies (every 4th update here)."""
-    settings = tiny_td7(target_update_rate=4)
-    eager, compiled = filled_agent(TD7, **settings), filled_agent(TD7, compile=True, **settings)
-    for _ in range(10):
-        expected, got = eager.update(), compiled.update()
-        assert set(got) == set(expected)
-        for key in expected:
-            torch.testing.assert_close(got[key], expected[key], rtol=1e-4, atol=1e-5)
-    for name in ("encoder", "critic_target", "actor_target"):
-        mine = getattr(compiled, name).state_dict()
-        for key, value in getattr(eager, name).state_dict().items():
-            torch.testing.assert_close(mine[key], value, rtol=1e-4, atol=1e-5)

@@ -147,9 +147,11 @@ class ValueClip(nn.Module):
 
     @torch.no_grad()
     def see(self, y: torch.Tensor) -> None:
-        """Widen the seen range by the targets ``y`` ``(K, N)`` (in place: graphs replay it)."""
-        self.seen_low.copy_(torch.minimum(self.seen_low, y.min(dim=1).values))
-        self.seen_high.copy_(torch.maximum(self.seen_high, y.max(dim=1).values))
+        """Widen the seen range by the targets ``y`` ``(K, N)`` (in place: graphs replay it).
+        A NaN target widens nothing (``fmin``/``fmax``), as in the authors' Python ``min``/``max``:
+        a member whose batch held one (its update skipped by the guard) keeps its bounds."""
+        self.seen_low.copy_(torch.fmin(self.seen_low, y.min(dim=1).values))
+        self.seen_high.copy_(torch.fmax(self.seen_high, y.max(dim=1).values))
 
     @torch.no_grad()
     def advance(self) -> None:

@@ -101,7 +101,7 @@ def write_docs(docs: Path) -> list[Path]:
         "# Results",
         "",
         "Each page is written from its bundle in `results/` by `python -m walkers.results` "
-        "(`make results`), never by hand; `tests/analysis/test_results.py` fails if one drifts.",
+        "(`make results`), never by hand; `tests/test_results.py` fails if one drifts.",
         "",
         "| page | what | budget reached |",
         "|---|---|---|",

@@ -71,6 +71,15 @@ test-slow: $(STAMP)  ## the long end-to-end tests (marker `slow`): algorithms le
 test-faults: $(STAMP)  ## the fault tests: kill -9 of a run and of a study's driver, SIGTERM to a process group, a tracking server that dies mid-run, a resume that cannot reopen its run (a few minutes; CI runs it after `make test`)
 	$(PY) -m pytest -q -n auto --dist loadscope --durations=5 -m faults $(ARGS)
 
+# The newest Python the README names (3.13), in a venv of its own: python3.13 from the PATH, else pyenv's.
+NEWEST_PYTHON ?= $(firstword $(shell command -v python3.13) $(wildcard $(HOME)/.pyenv/versions/3.13*/bin/python3.13))
+NEWEST_VENV := .venv-newest
+
+test-newest-python:  ## the foundation and training tests on Python 3.13, the newest the README names, in .venv-newest (CI runs it)
+	@test -n "$(NEWEST_PYTHON)" || { echo "error: no python3.13 on the PATH or in ~/.pyenv/versions: install Python 3.13 (e.g. pyenv install 3.13), or pass NEWEST_PYTHON=<its path>" >&2; exit 2; }
+	@test -f $(NEWEST_VENV)/.installed || { $(NEWEST_PYTHON) -m venv $(NEWEST_VENV) && $(NEWEST_VENV)/bin/pip install -qq --upgrade pip && $(NEWEST_VENV)/bin/pip install -qq -e '.[dev]' && touch $(NEWEST_VENV)/.installed; }
+	$(NEWEST_VENV)/bin/python -m pytest -q -n auto --dist loadscope -m "not cluster and not browser and not faults and not slow" tests/test_config.py tests/test_bad_input.py tests/test_random_streams.py tests/training tests/agents/test_resume_every_algorithm.py $(ARGS)
+
 ui-check: $(STAMP)  ## the links walkers prints open MLflow's training view, and the docs site renders, in a real headless Chromium (installs Debian's chromium if missing)
 	@command -v chromium >/dev/null || (apt-get update -qq && apt-get install -y -qq chromium >/dev/null)
 	$(PY) -m pytest -q -m browser $(ARGS)
@@ -99,10 +108,10 @@ bench-gpu: $(STAMP)  ## the prepared script for a GPU machine, under 9 minutes: 
 	timeout 240 $(PY) benchmarks/bench_population.py --device cuda --phase learning --populations 1,5,16 --reps 1 --steps 3000 --log-every 500 --split
 	timeout 30 $(PY) benchmarks/bench_dt.py --devices cuda --reps 2 --steps 10
 
-offline-gpu:  ## on a lent GPU: the offline study's arms, DT and TD3+BC seeds 0-2, on one dataset carried in .walkers/datasets (DATASET=walkers/walker2d/medium-v0), side by side, each algorithm's finished runs a bundle in $$OUT/bundles for walkers.ingest here (benchmarks/device_offline.sh; sets itself up from .whl/)
+offline-gpu:  ## on a GPU machine: the offline study's arms, DT and TD3+BC seeds 0-2, on one dataset carried in .walkers/datasets (DATASET=walkers/walker2d/medium-v0), side by side, each algorithm's finished runs a bundle in $$OUT/bundles for walkers.ingest here (benchmarks/device_offline.sh; sets itself up from .whl/)
 	bash benchmarks/device_offline.sh
 
-baselines-gpu:  ## on a lent GPU: the next off-policy 100k baselines results/ lacks, 3 seeds as one captured population each, JOBS (1) at a time, each finished one a results page in $$OUT/results.tar.gz (benchmarks/device_baselines.sh; sets itself up from .whl/)
+baselines-gpu:  ## on a GPU machine: the next off-policy 100k baselines results/ lacks, 3 seeds as one captured population each, JOBS (1) at a time, each finished one a results page in $$OUT/results.tar.gz (benchmarks/device_baselines.sh; sets itself up from .whl/)
 	bash benchmarks/device_baselines.sh
 
 test-gpu: $(STAMP)  ## on a GPU machine: the agents, populations, PPO, checkpoints and resume with device=auto on CUDA (a CPU machine runs them on the CPU)

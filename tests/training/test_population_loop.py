@@ -181,3 +181,17 @@ def test_ctrl_c_to_the_process_group_leaves_the_env_workers_to_the_run(store):
     again = run_cli([f"resume=[{ids}]", *store["overrides"]], cwd=store["path"])
     assert again.returncode == 0, again.stderr[-3000:]
     assert {r.info.status for r in all_runs(store["client"])} == {"FINISHED"}
+
+
+def test_env_workers_leave_the_training_process_its_signal_handlers():
+    """Gymnasium builds one env in the training process to read the spaces from: the workers'
+    ignoring of Ctrl-C and SIGTERM must not reach the training process (a SIGTERM it ignored
+    would leave the run training, and every process it starts would ignore it too). That the
+    workers ignore them is the test above."""
+    before = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+    assert signal.SIG_IGN not in before
+    envs = make_vector_env(compose_cfg(["env=pendulum"]).env, 2, workers=True)
+    try:
+        assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before
+    finally:
+        envs.close()

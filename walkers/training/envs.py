@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import multiprocessing
 import os
 import signal
 from typing import NamedTuple
@@ -141,9 +142,12 @@ def _worker_env(make) -> gym.Env:
     """An env built in its worker process, which leaves Ctrl-C and SIGTERM to the training
     process: a signal to the whole process group (a terminal's Ctrl-C, ``kill -TERM -<pgid>``)
     must stop the run at its step's end and write its last checkpoint, which reads the workers'
-    env RNGs, not kill the workers under it (the training process closes them)."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    env RNGs, not kill the workers under it (the training process closes them). Gymnasium
+    also calls it once in the training process itself (an env to read the spaces from): there
+    the signals stay the run's."""
+    if multiprocessing.parent_process() is not None:  # a worker, not the training process
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
     return make()
 
 

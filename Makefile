@@ -71,8 +71,9 @@ test-slow: $(STAMP)  ## the long end-to-end tests (marker `slow`): algorithms le
 test-faults: $(STAMP)  ## the fault tests: kill -9 of a run and of a study's driver, SIGTERM to a process group, a tracking server that dies mid-run, a resume that cannot reopen its run (a few minutes; CI runs it after `make test`)
 	$(PY) -m pytest -q -n auto --dist loadscope --durations=5 -m faults $(ARGS)
 
-# The newest Python the README names (3.13), in a venv of its own: python3.13 from the PATH, else pyenv's.
-NEWEST_PYTHON ?= $(firstword $(shell command -v python3.13) $(wildcard $(HOME)/.pyenv/versions/3.13*/bin/python3.13))
+# The newest Python the README names (3.13), in a venv of its own: a python3.13 on the PATH that
+# runs (pyenv's shim does not unless 3.13 is selected), else pyenv's own.
+NEWEST_PYTHON ?= $(firstword $(shell python3.13 -c 'import sys; print(sys.executable)' 2>/dev/null) $(wildcard $(HOME)/.pyenv/versions/3.13*/bin/python3.13))
 NEWEST_VENV := .venv-newest
 
 test-newest-python:  ## the foundation and training tests on Python 3.13, the newest the README names, in .venv-newest (CI runs it)

@@ -89,10 +89,10 @@ def compile_tolerance(name: str, agent, key: str) -> dict:
     return {"rtol": 0, "atol": 6 * lr}
 
 
-@pytest.mark.parametrize("population", [1, 2])
 @pytest.mark.parametrize("name", COMPILED)
-def test_compiled_updates_follow_the_eager_ones(name, population):
-    cls = agent_class(name)
+def test_compiled_updates_follow_the_eager_ones(name):
+    """Two members (a single agent is a population of one: the same code, K = 1)."""
+    cls, population = agent_class(name), 2
     settings = SCHEMAS[name].TINY | {"hidden_sizes": [32, 32], "batch_size": 32}
     eager = filled_agent(cls, population, **settings)
     compiled = filled_agent(cls, population, compile=True, **settings)

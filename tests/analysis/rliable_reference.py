@@ -1,5 +1,5 @@
 """What rliable 1.2.0 itself computes on :data:`SCORES`, as JSON: ``python -m
-tests.analysis.rliable_reference`` in an environment that has rliable (it does not install
+tests.analysis.rliable_reference [reps]`` in an environment that has rliable (it does not install
 beside this project's pandas 3: ``tests/analysis/test_rliable.py`` makes one apart, with
 ``rliable==1.2.0 'pandas<3'``). This file imports only numpy and rliable, so that it runs there.
 
@@ -21,7 +21,7 @@ SCORES = {
 REPS = 20_000
 
 
-def main() -> None:
+def main(reps: int = REPS) -> None:
     from rliable import library as rly
     from rliable import metrics
 
@@ -37,7 +37,7 @@ def main() -> None:
     def all_aggregates(x):
         return np.array([f(x) for f in aggregates.values()])
 
-    points, cis = rly.get_interval_estimates(scores, all_aggregates, reps=REPS)
+    points, cis = rly.get_interval_estimates(scores, all_aggregates, reps=reps)
     out = {
         arm: {
             name: [float(points[arm][i]), float(cis[arm][0, i]), float(cis[arm][1, i])]
@@ -46,7 +46,7 @@ def main() -> None:
         for arm in scores
     }
     poi_points, poi_cis = rly.get_interval_estimates(
-        {"A,B": (scores["A"], scores["B"])}, metrics.probability_of_improvement, reps=REPS
+        {"A,B": (scores["A"], scores["B"])}, metrics.probability_of_improvement, reps=reps
     )
     low, high = np.ravel(poi_cis["A,B"])
     out["P(A > B)"] = [float(np.ravel(poi_points["A,B"])[0]), float(low), float(high)]
@@ -54,4 +54,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    import sys
+
+    main(int(sys.argv[1]) if len(sys.argv) > 1 else REPS)

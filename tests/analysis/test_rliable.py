@@ -22,6 +22,9 @@ PINNED = json.loads((Path(__file__).with_name("rliable_reference.json")).read_te
 #: the statistics' own grain (normalized points), and one step of P(A > B)'s, which over three
 #: tasks of 5 x 3 pairs moves in steps of 1/45
 CI_NOISE, P_NOISE = 0.6, 1 / 45 + 1e-9
+#: rliable's draws in the live test (its 20,000 take 47 s of a CPU core; these about 12), whose
+#: P(A > B) ends may then fall two steps of its grain away
+LIVE_REPS, LIVE_P_NOISE = 5000, 2 / 45 + 1e-9
 
 
 def _per_task(arm: str) -> dict[str, np.ndarray]:
@@ -41,7 +44,7 @@ def ours() -> dict:
     return out | {"P(A > B)": list(p)}
 
 
-def assert_like(theirs: dict, mine: dict) -> None:
+def assert_like(theirs: dict, mine: dict, p_noise: float = P_NOISE) -> None:
     """Points to the last digit; CIs within the bootstrap's own noise."""
     for arm in SCORES:
         for name, (point, low, high) in theirs[arm].items():
@@ -49,7 +52,7 @@ def assert_like(theirs: dict, mine: dict) -> None:
             assert mine[arm][name][1:] == pytest.approx([low, high], abs=CI_NOISE), (arm, name)
     point, low, high = theirs["P(A > B)"]
     assert mine["P(A > B)"][0] == pytest.approx(point, rel=1e-12)
-    assert mine["P(A > B)"][1:] == pytest.approx([low, high], abs=P_NOISE)
+    assert mine["P(A > B)"][1:] == pytest.approx([low, high], abs=p_noise)
 
 
 def test_every_aggregate_and_ci_is_what_rliable_computed():
@@ -71,7 +74,7 @@ def test_every_aggregate_and_ci_is_rliable_s_own_live(tmp_path):
     if install.returncode != 0:
         pytest.skip(f"rliable 1.2.0 does not install here: {install.stderr[-300:]}")
     live = subprocess.run(
-        [python, "-m", "tests.analysis.rliable_reference"],
+        [python, "-m", "tests.analysis.rliable_reference", str(LIVE_REPS)],
         cwd=PROJECT_ROOT,
         capture_output=True,
         text=True,
@@ -79,5 +82,5 @@ def test_every_aggregate_and_ci_is_rliable_s_own_live(tmp_path):
     )
     assert live.returncode == 0, live.stderr[-2000:]
     theirs = json.loads(live.stdout)
-    assert_like(theirs, ours())
-    assert_like(theirs, PINNED)  # the pinned numbers are rliable's, within its own noise
+    assert_like(theirs, ours(), LIVE_P_NOISE)
+    assert_like(theirs, PINNED, LIVE_P_NOISE)  # the pinned numbers are rliable's, within its noise

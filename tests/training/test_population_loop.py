@@ -188,10 +188,17 @@ def test_env_workers_leave_the_training_process_its_signal_handlers():
     ignoring of Ctrl-C and SIGTERM must not reach the training process (a SIGTERM it ignored
     would leave the run training, and every process it starts would ignore it too). That the
     workers ignore them is the test above."""
-    before = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
-    assert signal.SIG_IGN not in before
-    envs = make_vector_env(compose_cfg(["env=pendulum"]).env, 2, workers=True)
+    were = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+    # the handlers a training process has (a pytest-xdist worker ignores SIGINT itself)
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
     try:
-        assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before
+        envs = make_vector_env(compose_cfg(["env=pendulum"]).env, 2, workers=True)
+        try:
+            now = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+            assert now == (signal.default_int_handler, signal.SIG_DFL)
+        finally:
+            envs.close()
     finally:
-        envs.close()
+        signal.signal(signal.SIGINT, were[0])
+        signal.signal(signal.SIGTERM, were[1])

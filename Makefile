@@ -79,7 +79,7 @@ NEWEST_VENV := .venv-newest
 test-newest-python:  ## the foundation and training tests on Python 3.13, the newest the README names, in .venv-newest (CI runs it)
 	@test -n "$(NEWEST_PYTHON)" || { echo "error: no python3.13 on the PATH or in ~/.pyenv/versions: install Python 3.13 (e.g. pyenv install 3.13), or pass NEWEST_PYTHON=<its path>" >&2; exit 2; }
 	@test -f $(NEWEST_VENV)/.installed || { $(NEWEST_PYTHON) -m venv $(NEWEST_VENV) && $(NEWEST_VENV)/bin/pip install -qq --upgrade pip && $(NEWEST_VENV)/bin/pip install -qq -e '.[dev]' && touch $(NEWEST_VENV)/.installed; }
-	$(NEWEST_VENV)/bin/python -m pytest -q -n auto --dist loadscope -m "not cluster and not browser and not faults and not slow" tests/test_config.py tests/test_bad_input.py tests/test_random_streams.py tests/training tests/agents/test_resume_every_algorithm.py $(ARGS)
+	$(NEWEST_VENV)/bin/python -m pytest -q -n auto --dist loadscope -m "not cluster and not browser and not faults and not slow" tests/test_config.py tests/test_bad_input.py tests/test_random_streams.py tests/data tests/training tests/agents/test_resume_every_algorithm.py $(ARGS)
 
 ui-check: $(STAMP)  ## the links walkers prints open MLflow's training view, and the docs site renders, in a real headless Chromium (installs Debian's chromium if missing)
 	@command -v chromium >/dev/null || (apt-get update -qq && apt-get install -y -qq chromium >/dev/null)

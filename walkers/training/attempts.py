@@ -81,16 +81,16 @@ def command_key(cfg: DictConfig) -> str:
     """What identifies "the same command" of a plain run: a digest of the composed config, less
     :data:`RESUME_OVERRIDABLE` and :data:`NOT_THE_COMMAND` (``tracking.run_name`` counts)."""
     settings = flatten(OmegaConf.to_container(cfg, resolve=True))
-    kept = {
-        key: value
-        for key, value in settings.items()
-        if key not in RESUME_OVERRIDABLE
-        and key != "tracking.run_name"
-        and not any(key == p or (p.endswith(".") and key.startswith(p)) for p in NOT_THE_COMMAND)
-    }
-    kept["tracking.run_name"] = settings.get("tracking.run_name")
+    kept = {key: value for key, value in settings.items() if _in_the_command(key)}
     text = json.dumps(kept, sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def _in_the_command(key: str) -> bool:
+    if key == "tracking.run_name":
+        return True
+    excluded = any(key == p or (p.endswith(".") and key.startswith(p)) for p in NOT_THE_COMMAND)
+    return key not in RESUME_OVERRIDABLE and not excluded
 
 
 def member_config(cfg: DictConfig, i: int) -> DictConfig:

@@ -108,11 +108,10 @@ class Checkpoint:
     def read(cls, path: str | os.PathLike) -> Checkpoint:
         """The checkpoint at ``path``; a damaged or foreign file raises :class:`CheckpointError`."""
         state = load(path)
-        missing = [f.name for f in dataclasses.fields(cls) if f.name not in state]
-        required = [name for name in missing if name not in ("cuda_rng", "env_rng")]
-        if required:
+        required = [f.name for f in dataclasses.fields(cls) if f.default is dataclasses.MISSING]
+        if missing := [name for name in required if name not in state]:
             raise CheckpointError(
-                f"checkpoint {str(path)!r} holds no {required[0]}: not a training run's checkpoint"
+                f"checkpoint {str(path)!r} holds no {missing[0]}: not a training run's checkpoint"
             )
         return cls.of(state)
 
@@ -124,8 +123,8 @@ class Checkpoint:
 
 
 def agent_from_checkpoint(checkpoint: Checkpoint | dict, env, device: str):
-    """The run config stored in a checkpoint and its agent, restored, for acting on ``env``:
-    ``(run config, agent)``."""
+    """The run config stored in a checkpoint (or the dict a file holds: :func:`load`) and its
+    agent, restored, for acting on ``env``: ``(run config, agent)``."""
     if isinstance(checkpoint, dict):
         checkpoint = Checkpoint.of(checkpoint)
     run_cfg = checkpoint.run_config()

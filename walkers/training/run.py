@@ -121,26 +121,10 @@ class RunFolder:
 class TrainingRun:
     """One training run: its MLflow run (a :class:`~walkers.tracking.Tracker`) and its folder."""
 
-    def __init__(self, tracker: tracking.Tracker, folder: RunFolder):
+    def __init__(self, tracker: tracking.Tracker, folder: RunFolder, lock=None):
         self.tracker, self.folder = tracker, folder
         tracker.spool_dir = folder.root  # what MLflow never takes is kept with the run
-        self._lock = None  # the open lock file while this process trains the run
-
-    def _hold_lock(self) -> None:
-        """Hold the run's lock while it trains (the kernel lets go of it when the process dies,
-        ``kill -9`` included): :func:`in_training_here` asks it."""
-        path = self.folder.lock
-        path.parent.mkdir(parents=True, exist_ok=True)
-        lock = open(path, "a")  # noqa: SIM115 (held until the run ends)
-        try:
-            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            lock.close()
-            raise ConfigError(
-                f"run {self.run_id} is training in another process of this machine: wait for it "
-                "to end, or stop it there"
-            ) from None
-        self._lock = lock
+        self._lock = lock  # the run's lock file, held while this process trains it
 
     # --- opening ------------------------------------------------------------------------------
     @classmethod
@@ -158,26 +142,33 @@ class TrainingRun:
         (a job run again after a store hiccup continues it).
         """
         tags = (extra_tags or {}) | trial_tags(cfg)
-        if cfg.resume:
-            tags |= {WORKER_TAG: worker_name()} | _resumed_tags(client, cfg)
-            tracker = tracking.Tracker.reopen(client, cfg.resume, ".", resumed_training=True)
+        lock = None
+        if cfg.resume:  # locked before it is reopened: a run another process trains is left be
+            lock = hold_lock(RunFolder.of(cfg.work_dir, cfg.resume))
+            try:
+                tags |= {WORKER_TAG: worker_name()} | _resumed_tags(client, cfg)
+                tracker = tracking.Tracker.reopen(client, cfg.resume, ".", resumed_training=True)
+            except BaseException:
+                lock.close()
+                raise
         else:
             tags = new_run_tags(cfg, axis.name, data) | tags
             tracker = tracking.Tracker.start(
                 client, cfg.tracking.experiment, run_name(cfg), tags=tags, spool_dir="."
             )
-        run = cls(tracker, RunFolder.of(cfg.work_dir, tracker.run_id))
+        run = cls(tracker, RunFolder.of(cfg.work_dir, tracker.run_id), lock)
         try:
+            if lock is None:
+                run._lock = hold_lock(run.folder)
             if cfg.resume:
                 tracker.set_tags(tags)
             else:
                 tracker.log_params(tracking.flatten(shareable(cfg)))
                 if data is not None:
                     tracker.log_params(data.params)
-            run._hold_lock()
             run._write_config(cfg)
         except BaseException as e:  # a signal here ends a new run KILLED too: its job reruns
-            tracker.end(tracking.KILLED if cfg.resume else tracking.status_after(e))
+            run.end(tracking.KILLED if cfg.resume else tracking.status_after(e))
             raise
         if cfg.tracking.get("system_metrics"):
             tracker.start_system_metrics(cfg.tracking.system_metrics_every)
@@ -272,6 +263,22 @@ def last_checkpoint(client, work_dir, run_id: str) -> Checkpoint:
             uploaded.step,
         )
     return uploaded
+
+
+def hold_lock(folder: RunFolder):
+    """The run's lock, held (the open file) until the run ends or the process dies, ``kill -9``
+    included: :func:`in_training_here` asks it; a run another process holds is refused."""
+    folder.lock.parent.mkdir(parents=True, exist_ok=True)
+    lock = open(folder.lock, "a")  # noqa: SIM115 (held until the run ends)
+    try:
+        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        lock.close()
+        raise ConfigError(
+            f"run {folder.root.name} is training in another process of this machine: wait for "
+            "it to end, or stop it there"
+        ) from None
+    return lock
 
 
 def in_training_here(work_dir, run_id: str) -> bool:

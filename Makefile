@@ -20,6 +20,9 @@ BASELINE_ENVS ?= walker2d,hopper,half_cheetah
 BASELINE_SEEDS ?= 0,1,2
 BASELINE_STEPS ?= 1000000
 BASELINE_STORE ?= sqlite:///.walkers/baselines.db
+# make study-original: a study of hours, kept outside the work tree so that a new checkout continues it
+ORIGINAL_DIR ?= $(HOME)/.walkers/original
+CORES := $(shell nproc)
 
 help:  ## list the make targets
 	@grep -hE '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk 'BEGIN {FS = ":.*## "}; {printf "  make %-16s %s\n", $$1, $$2}'
@@ -55,6 +58,11 @@ study: $(STAMP)  ## an A/B study to its verdict in minutes: REINFORCE vs TD3 on 
 
 baseline: $(STAMP)  ## one algorithm's locomotion baseline at its defaults: 1M steps x seeds 0-2 x Walker2d, Hopper, HalfCheetah, one torch thread, into .walkers/baselines.db; Ctrl-C stops it at a checkpoint and the same command continues it, across sessions (BASELINE_ALGO=td3 BASELINE_ENVS=hopper BASELINE_SEEDS=0; off-policy seeds as one population: BASELINE_SEEDS=0 ARGS=population=3); then `python -m walkers.export` it into results/
 	$(PY) -m walkers.train -m algo=$(BASELINE_ALGO) 'env=$(BASELINE_ENVS)' 'seed=$(BASELINE_SEEDS)' total_steps=$(BASELINE_STEPS) torch_threads=1 progress=false 'job_key="baseline/$(BASELINE_ALGO)/$${env.id}/{seed}"' 'tracking.run_name="baseline-$(BASELINE_ALGO)-$${env.id}-s{seed}"' tracking.experiment=baseline_$(BASELINE_ALGO) tracking.uri=$(BASELINE_STORE) $(ARGS)
+
+study-original: $(STAMP)  ## the original study at its full budget (TD3 vs REINFORCE, Walker2d-v5, 1M steps) in the background at the lowest priority, one job a core, one torch thread a job, its store, checkpoints and replay buffers in $$ORIGINAL_DIR (~/.walkers/original), REINFORCE's arm imported from results/reinforce_walker2d; the same command continues it
+	@mkdir -p $(ORIGINAL_DIR)
+	$(PY) -m walkers.ingest bundle=results/reinforce_walker2d/bundle tracking.uri=sqlite:///$(ORIGINAL_DIR)/mlflow.db
+	WALKERS_WORK_DIR=$(ORIGINAL_DIR)/work nice -n 19 $(PY) -m walkers.train -m ab=original hydra/launcher=joblib hydra.launcher.n_jobs=$(CORES) torch_threads=1 tracking.uri=sqlite:///$(ORIGINAL_DIR)/mlflow.db 'hydra.sweep.dir=$(ORIGINAL_DIR)/multirun/$${now:%Y-%m-%d_%H-%M-%S}' $(ARGS)
 
 compare: $(STAMP)  ## A/B report from finished runs (ARGS="env=walker2d algos=[reinforce,td3] tracking.experiment=...")
 	$(PY) -m walkers.compare $(ARGS)

@@ -21,12 +21,45 @@ def test_a_results_page_is_its_bundle_s_report(name, tmp_path):
     assert committed, f"results/{name} has no report: run python -m walkers.results {name}"
     for path in committed:
         summary = json.loads((out / path).read_text())
-        assert summary == json.loads((RESULTS_DIR / name / "report" / path).read_text()), (
-            f"results/{name}/report/{path} drifted from its bundle: python -m walkers.results"
+        differ = differences(
+            json.loads((RESULTS_DIR / name / "report" / path).read_text()), summary
+        )
+        assert not differ, (
+            f"results/{name}/report/{path}: {len(differ)} values differ from what its bundle "
+            f"gives today ({'; '.join(differ[:3])}). A change that moved a published figure "
+            f"should not have, unless on purpose: then write the page anew with `make results "
+            f"ARGS={name}` and commit it with the change"
         )
         if "pairs" in summary:  # an env's report pairs arms only where there are two or more
             pairwise = "## Pairwise" in (out / path.parent / "report.md").read_text()
             assert pairwise == bool(summary["pairs"]) == (len(summary["algos"]) > 1)
+
+
+def differences(committed, now, where: str = "") -> list[str]:
+    """Where two JSON values differ: ``key.path: committed -> now``, one line each."""
+    if isinstance(committed, dict) and isinstance(now, dict):
+        return [
+            line
+            for key in sorted(committed.keys() | now.keys(), key=str)
+            for line in differences(committed.get(key), now.get(key), f"{where}.{key}".strip("."))
+        ]
+    if isinstance(committed, list) and isinstance(now, list) and len(committed) == len(now):
+        return [
+            line
+            for i, (a, b) in enumerate(zip(committed, now, strict=True))
+            for line in differences(a, b, f"{where}[{i}]")
+        ]
+    return [] if committed == now else [f"{where}: {committed!r} -> {now!r}"]
+
+
+def test_the_drift_check_names_each_value_that_moved():
+    committed = {"algos": {"td3": {"cpu_hours": 0.6956690566658333, "seeds": 6}}, "x": [1, 2]}
+    now = {"algos": {"td3": {"cpu_hours": 0.6956690566658332, "seeds": 6}}, "x": [1, 3]}
+    assert differences(committed, now) == [
+        "algos.td3.cpu_hours: 0.6956690566658333 -> 0.6956690566658332",
+        "x[1]: 2 -> 3",
+    ]
+    assert differences(committed, committed) == []
 
 
 def test_an_unknown_page_is_refused_in_one_line():

@@ -120,7 +120,7 @@ def cost_rows(pair: PairPlan, costs: dict[str, ArmCost], workers: Sequence[int])
             continue
         arms = [costs[pair.arm], costs[pair.baseline]]
         steps = seeds * sum(c.env_steps for c in arms)
-        cpu_hours = seeds * sum(c.hours * c.cpus for c in arms)
+        cpu_hours = seeds * math.fsum(c.hours * c.cpus for c in arms)
         longest = max(c.hours for c in arms)
         walls = [math.ceil(2 * seeds / n) * longest for n in workers]
         rows.append(

@@ -18,6 +18,7 @@ from references with their provenance.
 from __future__ import annotations
 
 import json
+import math
 from collections import Counter
 from collections.abc import Mapping
 from pathlib import Path
@@ -172,5 +173,5 @@ def provenance(reference: BundleRuns, arm_runs: dict[str, list[str]]) -> dict:
         "commits": sorted({r.data.tags.get("git_commit", "unknown") for r in runs}),
         "packages": sorted({r.data.tags.get("walkers.packages", "unknown") for r in runs}),
         "devices": sorted({r.data.params.get("device", "unknown") for r in runs}),
-        "cpu_hours": sum(h for h in hours if h is not None) if any(hours) else None,
+        "cpu_hours": math.fsum(h for h in hours if h is not None) if any(hours) else None,
     }

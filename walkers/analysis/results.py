@@ -5,6 +5,7 @@ comparison (and its JSON form). Built by :mod:`walkers.analysis.comparison`, ren
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -125,7 +126,7 @@ class AlgoResult:
         counted = [
             r.cpu_hours for r in self.runs if r.cpu_hours is not None and np.isfinite(r.cpu_hours)
         ]
-        return float(sum(counted)), len(counted)
+        return math.fsum(counted), len(counted)
 
     def as_dict(self) -> dict:
         reached = np.isfinite(self.steps_to_threshold)

@@ -5,6 +5,7 @@ member, and the statistics of :mod:`walkers.analysis.stats` over them (:func:`su
 from __future__ import annotations
 
 import itertools
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -144,4 +145,4 @@ def cpu_hours(by_task: dict[str, AlgoResult]) -> tuple[float, int, int]:
     """An arm's CPU-hours over the suite: (hours, runs that counted them, runs)."""
     counted = [r.cpu_hours for r in by_task.values()]
     runs = sum(len(r.runs) for r in by_task.values())
-    return sum(h for h, _ in counted), sum(n for _, n in counted), runs
+    return math.fsum(h for h, _ in counted), sum(n for _, n in counted), runs

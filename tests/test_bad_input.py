@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
 from tests.conftest import TINY, all_runs, compose_cfg, one_line_error, run_cli
@@ -33,8 +35,15 @@ CASES = [
 ]
 
 
+def contents(folder: Path) -> set[str]:
+    """Every file and folder under ``folder``, as paths relative to it."""
+    return {str(p.relative_to(folder)) for p in folder.rglob("*")}
+
+
 @pytest.mark.parametrize("overrides,expected", CASES, ids=[" ".join(c[0]) for c in CASES])
-def test_bad_value_is_rejected_before_any_run(store, overrides, expected):
+def test_bad_value_is_rejected_before_any_run(store, overrides, expected, monkeypatch):
+    monkeypatch.chdir(store["path"])  # the store's folder is the working directory: nothing new
+    before = contents(store["path"])
     cfg = compose_cfg(["env=pendulum", *TINY, *store["overrides"], *overrides])
     with pytest.raises(ConfigError) as error:
         train(cfg)
@@ -44,17 +53,33 @@ def test_bad_value_is_rejected_before_any_run(store, overrides, expected):
         assert word in message
     if not overrides[0].startswith("tracking.uri"):
         assert all_runs(store["client"]) == []
+    assert contents(store["path"]) == before
 
 
-# Every case is refused in-process above; these prove the command line's part: one line, exit 2
-# (a plain bad value, and resume=$RUN_ID with the variable unset, which only a shell makes).
-@pytest.mark.parametrize("case", [0, 17], ids=lambda i: " ".join(CASES[i][0]))
+# Every case is refused in-process above; these prove the command line's part: one line, exit 2,
+# and no outputs/ folder (a plain bad value, refused before Hydra starts; resume=$RUN_ID with the
+# variable unset, which only a shell makes; a run id the store lacks, refused in the job).
+@pytest.mark.parametrize("case", [0, 14, 17], ids=lambda i: " ".join(CASES[i][0]))
 def test_cli_prints_one_line_and_exits_2(store, case):
     overrides, expected = CASES[case]
+    before = contents(store["path"])
     result = run_cli(["env=pendulum", *TINY, *store["overrides"], *overrides], cwd=store["path"])
     error = one_line_error(result)
     assert all(word in error for word in expected)
     assert all_runs(store["client"]) == []
+    assert contents(store["path"]) == before
+
+
+@pytest.mark.parametrize(
+    "module,key", [("walkers.train", "resume"), ("walkers.evaluate", "run_id")]
+)
+def test_a_run_id_on_a_store_that_does_not_exist_creates_no_store(tmp_path, module, key):
+    """Connecting to a sqlite file creates it: a command that reads a run refuses first."""
+    result = run_cli([f"{key}=0123456789abcdef"], cwd=tmp_path, module=module)
+    error = one_line_error(result)
+    assert f"{key}='0123456789abcdef' is not a run in tracking.uri='sqlite:///mlflow.db'" in error
+    assert "mlflow.db does not exist" in error
+    assert list(tmp_path.iterdir()) == []
 
 
 COMPOSITION_CASES = [

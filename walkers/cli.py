@@ -119,8 +119,10 @@ def renamed_overrides(args: list[str]) -> list[str]:
     return out
 
 
-def exit_on_bad_overrides(config_name: str, args: list[str] | None = None) -> None:
-    """Compose ``config_name`` with the command line's overrides; on error: one line, exit 2."""
+def exit_on_bad_overrides(config_name: str, args: list[str] | None = None, check=None) -> None:
+    """Compose ``config_name`` with the command line's overrides, and ``check`` each composed
+    config (a :class:`ConfigError` for a bad value); on error: one line, exit 2, before Hydra
+    has created a folder or a run."""
     args = sys.argv[1:] if args is None else args
     if any(a in ("--help", "-h", "--hydra-help", "--info", "-i") for a in args):
         return
@@ -134,6 +136,8 @@ def exit_on_bad_overrides(config_name: str, args: list[str] | None = None) -> No
                 refuse_password(
                     OmegaConf.select(cfg, "tracking.uri", throw_on_resolution_failure=False)
                 )
+                if check is not None:
+                    check(cfg)
     except (MissingConfigException, ConfigCompositionException, OverrideParseException) as e:
         print(f"error: {one_line_hydra_error(e, args)}", file=sys.stderr)
         sys.exit(2)

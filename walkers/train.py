@@ -13,7 +13,9 @@ from __future__ import annotations
 
 import math
 import os
+import shutil
 import sys
+from pathlib import Path
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
@@ -49,6 +51,34 @@ def trial_reporter(cfg: DictConfig):
     return TrialReporter(cfg.trial, cfg.get("pruner"), cfg.seed, cfg.seeds_per_trial)
 
 
+def settings_checked(cfg: DictConfig) -> None:
+    """A command's values checked before Hydra writes its output folder: a refused value
+    creates nothing (what needs the store, a run to continue say, is checked in the job)."""
+    from walkers.training.validate import validate
+
+    validate(cfg, warn=False)
+
+
+def forget_output_dir() -> None:
+    """A refused run leaves nothing: the output folder Hydra made for it (its ``.hydra/`` and
+    the job's log, whose lines went to the console too) goes, and the folders above it that are
+    left empty, up to the working directory."""
+    hydra_cfg = HydraConfig.get()
+    if hydra_cfg.mode != RunMode.RUN or not hydra_cfg.output_subdir:
+        return
+    out, cwd = Path(hydra_cfg.runtime.output_dir).resolve(), Path.cwd().resolve()
+    hydra_files = {hydra_cfg.output_subdir, f"{hydra_cfg.job.name}.log"}
+    if out == cwd or cwd not in out.parents or not out.is_dir():
+        return
+    if {p.name for p in out.iterdir()} - hydra_files:
+        return  # something of the run's own: keep it
+    shutil.rmtree(out)
+    for folder in out.parents:
+        if folder == cwd or any(folder.iterdir()):
+            break
+        folder.rmdir()
+
+
 def parallel_jobs() -> int:
     """How many jobs Hydra's launcher runs at once (``n_jobs`` of e.g. the joblib launcher)."""
     n_jobs = HydraConfig.get().launcher.get("n_jobs") or 1
@@ -66,6 +96,8 @@ def fail(message: str, exit_code: int):
     launcher = HydraConfig.get().launcher.get("_target_", "")
     if any(remote in launcher for remote in ("hydra_ray_launcher", "hydra_submitit_launcher")):
         raise JobFailed(message)
+    if exit_code == 2:  # refused: bad input creates nothing
+        forget_output_dir()
     print(message, file=sys.stderr)
     sys.exit(exit_code)
 
@@ -115,7 +147,7 @@ if __name__ == "__main__":
     # started (its trials, its jobs' runs) instead of dying in place, and a second signal waits
     stop_cleanly_on_signals()
     sys.argv[1:] = renamed_overrides(sys.argv[1:])
-    exit_on_bad_overrides("train")
+    exit_on_bad_overrides("train", check=settings_checked)
     try:
         main()
     except KeyboardInterrupt:  # a plain multirun's driver (a run and a study say it themselves)

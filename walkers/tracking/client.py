@@ -119,9 +119,11 @@ def get_or_create_experiment(client: MlflowClient, name: str) -> str:
         return experiment.experiment_id
 
 
-def connect(uri: str) -> StoreClient:
+def connect(uri: str, looking_for: str | None = None) -> StoreClient:
     """A :class:`StoreClient` for ``uri``; an unreachable or unusable store is a
-    :class:`ConfigError`.
+    :class:`ConfigError`, and so is a sqlite file that does not exist when the command is
+    ``looking_for`` something already in the store (``"resume='<id>'"``): connecting would
+    create an empty store where nobody asked for one.
 
     A server is probed once, quickly, first: MLflow's own client retries a refused connection
     with backoff for minutes before it gives up.
@@ -129,6 +131,12 @@ def connect(uri: str) -> StoreClient:
     for name, value in QUICK_HTTP_RETRIES.items():
         os.environ.setdefault(name, value)
     refuse_password(uri)
+    db = Path(uri.removeprefix("sqlite:///"))
+    if looking_for and uri.startswith("sqlite:///") and not db.exists():
+        raise ConfigError(
+            f"{looking_for} is not a run in tracking.uri={uri!r}: there is no store there "
+            f"({db} does not exist); pass the tracking.uri the run was logged to"
+        )
     try:
         if uri.startswith(("http://", "https://")):
             urllib.request.urlopen(f"{uri.rstrip('/')}/health", timeout=10).close()

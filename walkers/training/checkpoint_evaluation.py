@@ -73,7 +73,7 @@ def evaluate(cfg: DictConfig) -> dict:
     _check(cfg)
     client = None
     if cfg.run_id:
-        client = tracking.connect(cfg.tracking.uri)
+        client = tracking.connect(cfg.tracking.uri, looking_for=f"run_id={cfg.run_id!r}")
         tracking.require_run(client, cfg.run_id, cfg.tracking.uri)
     checkpoint = Checkpoint.read(fetch_checkpoint(cfg, client))
     env = make_env(checkpoint.config["env"], shaping=False, render_mode=cfg.render)

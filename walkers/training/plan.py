@@ -61,7 +61,8 @@ def plan(cfg: DictConfig, overrides=()) -> Plan:
     check_command(cfg)  # before anything is read or created
     if not cfg.resume:
         validate(cfg)  # before the store is asked anything
-    client = tracking.connect(cfg.tracking.uri)
+    resumed = f"resume={cfg.resume!r}" if isinstance(cfg.resume, str) else f"resume={cfg.resume}"
+    client = tracking.connect(cfg.tracking.uri, looking_for=resumed if cfg.resume else None)
     run_dataset = loader()
     attempt = attempts.of_command(client, cfg, run_dataset)
     cfg, new_run_tags = attempt.cfg, {COMMAND_KEY_TAG: attempt.key}

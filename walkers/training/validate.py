@@ -138,8 +138,9 @@ def check(key: str, value, ok: bool, allowed: str) -> None:
         raise ConfigError(f"{key}={value!r} is not allowed: must be {allowed}")
 
 
-def validate(cfg: DictConfig) -> None:
-    """Raise :class:`ConfigError` naming the first bad key, its value and what is allowed."""
+def validate(cfg: DictConfig, warn: bool = True) -> None:
+    """Raise :class:`ConfigError` naming the first bad key, its value and what is allowed (and
+    ``warn`` of a setting that is allowed but likely a mistake)."""
     for key, allowed in RULES:
         value = OmegaConf.select(cfg, key, default=_MISSING)
         if value is _MISSING:
@@ -170,7 +171,8 @@ def validate(cfg: DictConfig) -> None:
             torch.cuda.is_available(),
             "auto or cpu on this machine (torch sees no CUDA device)",
         )
-    warn_short_warmup(cfg)
+    if warn:
+        warn_short_warmup(cfg)
 
 
 def check_command(cfg: DictConfig) -> None:

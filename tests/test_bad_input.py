@@ -32,6 +32,7 @@ CASES = [
     (["algo.compile=yes"], ["algo.compile='yes'", "true or false"]),
     (["resume="], ["resume=''", "empty", "resume=<run id>"]),  # resume=$RUN_ID, variable unset
     (["resume=[]"], ["resume=[]", "empty"]),
+    (["algo=td3", "+algo.lrr=1e-3"], ["algo.lrr=0.001", "did you mean 'lr'?", "batch_size"]),
 ]
 
 
@@ -86,7 +87,9 @@ COMPOSITION_CASES = [
     # Hydra's own errors (unknown option or key), as one line before Hydra runs
     (["algo=foo"], ["algo='foo'", "reinforce, sac, td3"]),
     (["env=walker3d"], ["env='walker3d'", "walker2d"]),
-    (["totl_steps=5"], ["totl_steps=5", "no key 'totl_steps'"]),
+    (["totl_steps=5"], ["totl_steps=5", "no key 'totl_steps'", "did you mean 'total_steps'?"]),
+    (["algo.lrr=1e-3"], ["algo.lrr=1e-3", "no key 'algo.lrr'", "did you mean 'algo.lr'?"]),
+    (["algo=td33"], ["algo='td33'", "did you mean 'td3'?", "reinforce, sac, td3"]),
     (["algo.momentum=0.9"], ["algo.momentum=0.9", "no key"]),
     (["-m", "algo=td3,foo", "seed=0,1"], ["algo='foo'"]),
     (["-m", "sweeps=nope"], ["sweeps='nope'", "td3_walker2d"]),

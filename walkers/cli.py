@@ -16,7 +16,7 @@ from omegaconf import OmegaConf
 from omegaconf.errors import InterpolationKeyError, InterpolationResolutionError
 
 from walkers import CONF_DIR as _CONF_DIR
-from walkers.errors import CheckpointError, ConfigError
+from walkers.errors import CheckpointError, ConfigError, did_you_mean
 from walkers.secrets import has_password, redacted, refuse_password
 
 CONF_DIR = str(_CONF_DIR)
@@ -74,21 +74,46 @@ def _single_values(args: list[str]) -> list[list[str]]:
     return combos
 
 
-def one_line_hydra_error(error: Exception, overrides: list[str]) -> str:
-    """A Hydra composition error as one line naming the bad override and what is allowed."""
+def one_line_hydra_error(error: Exception, overrides: list[str], keys=()) -> str:
+    """A Hydra composition error as one line naming the bad override, the closest allowed
+    names and what is allowed (``keys``: the config's keys, for an unknown one)."""
     if isinstance(error, MissingConfigException) and error.missing_cfg_file:
         group, _, name = error.missing_cfg_file.rpartition("/")
-        options = ", ".join(error.options or [])
-        return f"{group}={name!r} is not allowed: must be one of {options}"
-    text = str(error)
-    if text.startswith("Could not override '"):
-        key = text.split("'")[1]
+        options = error.options or []
+        return (
+            f"{group}={name!r} is not allowed: {did_you_mean(name, options)}"
+            f"must be one of {', '.join(options)}"
+        )
+    key = unknown_key(error)
+    if key is not None:
         given = next((o for o in overrides if o.split("=", 1)[0].lstrip("+~") == key), key)
         return (
-            f"{given}: there is no key {key!r} in the config (see `--cfg job` for the keys; "
-            f"prefix + to add a new one)"
+            f"{given}: there is no key {key!r} in the config; {did_you_mean(key, keys)}"
+            "(see `--cfg job` for the keys; prefix + to add a new one)"
         )
-    return text.splitlines()[0]
+    return str(error).splitlines()[0]
+
+
+def unknown_key(error: Exception) -> str | None:
+    """The key a Hydra composition error says is not in the config, if it says that."""
+    text = str(error)
+    return text.split("'")[1] if text.startswith("Could not override '") else None
+
+
+def config_keys(config_name: str, overrides: list[str]) -> list[str]:
+    """Every dotted key of ``config_name`` composed with ``overrides`` (none if they fail)."""
+    try:
+        cfg = OmegaConf.to_container(compose(config_name=config_name, overrides=overrides))
+    except Exception:
+        return []
+
+    def walk(node, prefix):
+        for k, v in node.items():
+            yield f"{prefix}{k}"
+            if isinstance(v, dict):
+                yield from walk(v, f"{prefix}{k}.")
+
+    return list(walk(cfg, ""))
 
 
 #: Config names renamed in 0.2 (old -> new): the old ones still work for one release, with a note.
@@ -139,7 +164,12 @@ def exit_on_bad_overrides(config_name: str, args: list[str] | None = None, check
                 if check is not None:
                     check(cfg)
     except (MissingConfigException, ConfigCompositionException, OverrideParseException) as e:
-        print(f"error: {one_line_hydra_error(e, args)}", file=sys.stderr)
+        keys = []
+        if (key := unknown_key(e)) is not None:  # the config's keys without the unknown one
+            others = [o for o in overrides if o.split("=", 1)[0].lstrip("+~") != key]
+            with initialize_config_dir(config_dir=CONF_DIR):
+                keys = config_keys(config_name, others)
+        print(f"error: {one_line_hydra_error(e, args, keys)}", file=sys.stderr)
         sys.exit(2)
     except ConfigError as e:
         print(f"error: {e}", file=sys.stderr)

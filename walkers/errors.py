@@ -1,5 +1,10 @@
 """Errors the command-line entrypoints turn into one clear line and exit code 2."""
 
+from __future__ import annotations
+
+import difflib
+from collections.abc import Iterable
+
 
 class ConfigError(ValueError):
     """A value that cannot work; the message names the key, the bad value and what is allowed."""
@@ -7,3 +12,9 @@ class ConfigError(ValueError):
 
 class CheckpointError(RuntimeError):
     """A checkpoint that is missing, truncated or corrupted; the message names the file."""
+
+
+def did_you_mean(given: str, allowed: Iterable[str]) -> str:
+    """``"did you mean 'x'? "`` for the allowed names closest to a mistyped one, else ``""``."""
+    close = difflib.get_close_matches(given, list(allowed), n=2, cutoff=0.7)
+    return f"did you mean {' or '.join(repr(c) for c in close)}? " if close else ""

@@ -24,7 +24,13 @@ from walkers.agents.declarations.schemas import SCHEMAS
 from walkers.agents.factory import defaults_for
 from walkers.agents.td3 import TD3
 from walkers.errors import ConfigError
-from walkers.training.settings import RunSettings, train_yaml, write_train_yaml
+from walkers.training.settings import (
+    HELP_YAML,
+    RunSettings,
+    train_yaml,
+    write_help_yaml,
+    write_train_yaml,
+)
 from walkers.training.validate import validate
 
 DECLARED = [(name, f.name) for name, schema in SCHEMAS.items() for f in fields(schema)]
@@ -54,6 +60,7 @@ def test_a_menu_of_names_offers_what_the_code_builds(schema, key, built):
 def test_the_menus_are_written_from_the_declarations(module):
     assert write_menus(check=True) == []
     assert write_train_yaml(check=True) == []
+    assert write_help_yaml(check=True) == []  # walkers.train --help
     result = subprocess.run(
         [sys.executable, "-m", module, "--check"],
         cwd=PROJECT_ROOT,
@@ -85,6 +92,24 @@ def test_a_run_setting_edited_by_hand_is_found_and_rewritten(tmp_path):
     assert train.read_text() == declared == train_yaml(declared)
     with pytest.raises(ValueError, match="no line"):  # the block's heading is kept by hand
         train_yaml(declared.replace("# The run's own settings", "# settings"))
+
+
+def test_the_help_is_written_from_the_declarations_and_train_yaml(tmp_path):
+    """conf/hydra/help/train.yaml follows from the declared settings and conf/train.yaml alone:
+    written beside a copy of train.yaml it is the project's; a group added to the defaults list
+    puts the help out of step until `make menus`."""
+    help_yaml = PROJECT_ROOT / "conf" / HELP_YAML
+    train = tmp_path / "train.yaml"
+    shutil.copy(PROJECT_ROOT / "conf" / "train.yaml", train)
+    assert write_help_yaml(tmp_path) == [str(tmp_path / HELP_YAML)]
+    assert (tmp_path / HELP_YAML).read_text() == help_yaml.read_text()
+    train.write_text(
+        train.read_text().replace("  - ab: null", "  - extra: null  # a new group\n  - ab: null")
+    )
+    assert write_help_yaml(tmp_path, check=True) == [str(tmp_path / HELP_YAML)]
+    write_help_yaml(tmp_path)
+    assert "extra=null" in (tmp_path / HELP_YAML).read_text()
+    assert "${walkers.options:extra," in (tmp_path / HELP_YAML).read_text()
 
 
 def test_the_composed_run_settings_are_the_declared_ones():
@@ -196,7 +221,7 @@ def test_a_key_the_algorithm_does_not_declare_is_refused(override):
     """TD3's constructor would take these (the core's and DDPG's knobs); TD3 declares neither."""
     key = override[1:].split("=")[0]
     cfg = compose_cfg(["algo=td3", "env=pendulum", override])
-    with pytest.raises(ConfigError, match=rf"^{key}=.* td3 has no hyperparameter .*\(it has lr, "):
+    with pytest.raises(ConfigError, match=rf"^{key}=.* td3 has no hyperparameter .*\(.*it has lr, "):
         validate(cfg)
 
 

@@ -129,7 +129,7 @@ def test_a_bare_comma_list_on_the_command_line_is_a_list_not_a_sweep():
 def test_unknown_key_hint_suggests_a_close_key_and_lists_the_varying_ones_first():
     params = [{**TD3, "seed": "0"}, {**TD3, "seed": "1", "algo.lr": "0.001"}]
     hint = arms.unknown_key_hint("algo.hiden_sizes", params)
-    assert hint.startswith("did you mean algo.hidden_sizes? keys the runs have: algo.lr, ")
+    assert hint.startswith("did you mean 'algo.hidden_sizes'? keys the runs have: algo.lr, ")
     assert "seed" in hint  # listed, after the keys worth a study
 
 

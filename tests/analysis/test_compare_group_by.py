@@ -121,5 +121,5 @@ def test_a_group_by_key_no_run_has_is_a_one_line_error(sizes_store, tmp_path):
     with pytest.raises(ConfigError) as refused:
         compare(cfg)
     error = str(refused.value)
-    assert "group_by='algo.hiden_sizes'" in error and "did you mean algo.hidden_sizes?" in error
+    assert "group_by='algo.hiden_sizes'" in error and "did you mean 'algo.hidden_sizes'" in error
     assert "\n" not in error and not out.exists()

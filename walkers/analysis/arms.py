@@ -11,12 +11,12 @@ by what sets them apart (``td3 (algo.hidden_sizes=[64, 64])``), and a note says 
 from __future__ import annotations
 
 import ast
-import difflib
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 from walkers.agents.declarations.schemas import declared_since
 from walkers.analysis import formatting
+from walkers.errors import did_you_mean
 from walkers.tracking import ABSENT, BUDGET_TAG, differing_keys
 
 #: Config keys (MLflow params; a trailing "." is the whole subtree) that do not make an arm:
@@ -167,10 +167,9 @@ def unknown_key_hint(key: str, runs_params: Sequence[Mapping[str, str]], limit: 
     """What to say about a ``group_by`` key no run has: a close match, and keys runs do have
     (first those whose values differ between the runs: the ones worth a study)."""
     known = sorted(set().union(*runs_params)) if runs_params else []
-    close = difflib.get_close_matches(key, known, n=1)
     varying = [k for k in differing_keys(runs_params) if not is_not_the_experiment(k)]
     listed = varying + [k for k in known if k not in varying]
-    hint = f"did you mean {close[0]}? " if close else ""
+    hint = did_you_mean(key, known)
     if not listed:
         return hint + "the runs have no params"
     more = f", ... ({len(listed) - limit} more)" if len(listed) > limit else ""

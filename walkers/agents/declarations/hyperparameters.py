@@ -25,6 +25,8 @@ from dataclasses import dataclass, field
 from numbers import Real
 from typing import Any, ClassVar
 
+from walkers.errors import did_you_mean
+
 
 @dataclass(frozen=True)
 class Allowed:
@@ -135,7 +137,7 @@ def problems(schema: type[Hyperparameters], values: dict, prefix: str = "algo.")
         if key not in names and key not in NOT_HYPERPARAMETERS:
             return (
                 f"{prefix}{key}={values[key]!r} is not allowed: {schema.NAME} has no "
-                f"hyperparameter {key!r} (it has {', '.join(names)})"
+                f"hyperparameter {key!r} ({did_you_mean(key, names)}it has {', '.join(names)})"
             )
     for f in declared(schema):
         if f.name not in values:

@@ -338,3 +338,24 @@ def filled_agent(cls, population: int = 1, device: str = "cpu", **settings):
             ]
         )
     return agent
+
+
+#: What a run, a sweep or a report writes in its working directory (``make clean`` removes them).
+RUN_OUTPUTS = ("mlflow.db", "mlruns", "mlartifacts", "outputs", "multirun", ".walkers",
+               "reports", "optuna.db")  # fmt: skip
+_OUTPUTS_BEFORE = {name for name in RUN_OUTPUTS if (PROJECT_ROOT / name).exists()}
+
+
+def pytest_sessionfinish(session, exitstatus):
+    """Tests write only to temporary folders: a run output that appeared in the checkout while
+    the suite ran fails it (each test runs its commands in its own ``tmp_path``)."""
+    if hasattr(session.config, "workerinput"):
+        return  # a pytest-xdist worker: the controller checks once, after all of them
+    new = sorted(n for n in RUN_OUTPUTS if (PROJECT_ROOT / n).exists())
+    new = [n for n in new if n not in _OUTPUTS_BEFORE]
+    if new:
+        reporter = session.config.pluginmanager.get_plugin("terminalreporter")
+        reporter.write_line(
+            f"error: the tests wrote {', '.join(new)} into {PROJECT_ROOT}", red=True
+        )
+        session.exitstatus = pytest.ExitCode.TESTS_FAILED

@@ -1,6 +1,10 @@
-"""Every option of every config group composes, and the CLI's --help / --cfg work."""
+"""Every option of every config group composes, and the CLI's --help / --cfg work: --help leads
+with the run settings and their docs, then every group with its options on disk."""
 
 from __future__ import annotations
+
+import re
+from dataclasses import fields
 
 import pytest
 from hydra import compose, initialize_config_dir
@@ -8,6 +12,7 @@ from omegaconf import OmegaConf
 
 from tests.conftest import CONF_DIR, compose_cfg, run_cli
 from walkers import PROJECT_ROOT
+from walkers.training.settings import SET_BY_WALKERS, RunSettings
 from walkers.training.validate import is_offline, validate
 from walkers.tuning.trial import make_pruner
 
@@ -61,11 +66,66 @@ def test_tracking_uri_follows_the_environment_variable(monkeypatch):
     assert compose_cfg([]).tracking.uri == "http://tracking.example:5000"
 
 
-def test_cli_help_and_cfg_job(tmp_path):
-    help_ = run_cli(["--help"], cwd=tmp_path)
-    assert help_.returncode == 0, help_.stderr
-    assert "algo: " + ", ".join(GROUPS["algo"]) in help_.stdout  # the menu of config groups
-    assert "env: " + ", ".join(GROUPS["env"]) in help_.stdout
+#: Every config group of walkers.train and its options, as they are on disk: the folders of conf/
+#: (Hydra's own, hydra/, aside) and sweeps/, a folder of the top level found through searchpath.
+TRAIN_GROUPS = {
+    folder.name: sorted(path.stem for path in folder.glob("*.yaml"))
+    for folder in [*(PROJECT_ROOT / "conf").iterdir(), PROJECT_ROOT / "sweeps"]
+    if folder.is_dir() and folder.name != "hydra"
+}
+
+
+@pytest.fixture(scope="module")
+def train_help(tmp_path_factory) -> list[str]:
+    """The lines ``python -m walkers.train --help`` prints."""
+    result = run_cli(["--help"], cwd=tmp_path_factory.mktemp("help"))
+    assert result.returncode == 0, result.stderr
+    return result.stdout.splitlines()
+
+
+def words(lines: list[str]) -> str:
+    """``lines`` as one line, each run of spaces one space (the help wraps its docs)."""
+    return " ".join(" ".join(lines).split())
+
+
+def line_of(lines: list[str], start: str) -> int:
+    (at,) = [i for i, line in enumerate(lines) if line.startswith(start)]
+    return at
+
+
+def test_help_leads_with_each_run_setting_and_its_doc(train_help):
+    assert train_help[0].startswith("python -m walkers.train ")  # not "train is powered by Hydra"
+    assert max(len(line) for line in train_help) <= 100, "the help wraps to 100 columns"
+    at = {f.name: line_of(train_help, f"{f.name}=") for f in fields(RunSettings)}
+    for f in fields(RunSettings):  # the doc beside the setting, as settings.py declares it
+        beside = words(train_help[at[f.name] : at[f.name] + 6])
+        assert " ".join(f.metadata["doc"].split()) in beside, f.name
+    groups = line_of(train_help, "== Config groups")
+    internal = [i for i, line in enumerate(train_help) if re.match(r"(trial|pruning)\.", line)]
+    run_settings = [i for name, i in at.items() if name not in SET_BY_WALKERS]
+    assert max(run_settings) < groups < min(internal)  # the run's own settings first
+    assert min(at[name] for name in SET_BY_WALKERS) > groups  # walkers' own keys last
+    assert not any("trial." in line for line in train_help[: max(run_settings) + 1])
+
+
+def test_help_lists_every_config_group_with_its_options_on_disk(train_help):
+    assert {"algo", "env", "tracking", "optuna", "pruner", "experiment", "sweeps", "ab"} <= set(
+        TRAIN_GROUPS
+    )
+    groups = line_of(train_help, "== Config groups")
+    examples = line_of(train_help, "== Examples")
+    for group, options in TRAIN_GROUPS.items():
+        at = line_of(train_help, f"{group}=")
+        assert groups < at < examples, group
+        _, listed = words(train_help[at:]).split(" ", 1)  # after group=default
+        assert listed.startswith(", ".join(options)), (group, listed[:200])
+    commands = train_help[examples + 1 : examples + 4]
+    assert all(line.startswith("python -m walkers.train ") for line in commands), commands
+
+
+def test_cli_hydra_help_and_cfg_job(tmp_path):
+    hydra_help = run_cli(["--hydra-help"], cwd=tmp_path)  # Hydra's own help, as it was
+    assert hydra_help.returncode == 0 and "== Flags ==" in hydra_help.stdout, hydra_help.stderr
     job = run_cli(["--cfg", "job", "algo=td3", "env=pendulum", "seed=3"], cwd=tmp_path)
     assert job.returncode == 0, job.stderr
     cfg = OmegaConf.create(job.stdout)

@@ -63,6 +63,9 @@ def test_the_installed_package_carries_its_configs_and_studies(installed, tmp_pa
         installed, ["-m", "walkers.train", "--cfg", "job", "sweeps=pendulum_tiny"], tmp_path
     )
     assert study.returncode == 0 and "total_steps" in study.stdout, study.stderr[-2000:]
+    help_ = run_installed(installed, ["-m", "walkers.train", "--help"], tmp_path)
+    assert help_.returncode == 0, help_.stderr[-2000:]
+    assert "pendulum_tiny" in help_.stdout and "ppo_value_clip" in help_.stdout  # sweeps/, conf/ab/
 
 
 def test_the_installed_package_trains_from_another_directory(

@@ -221,7 +221,9 @@ def test_a_key_the_algorithm_does_not_declare_is_refused(override):
     """TD3's constructor would take these (the core's and DDPG's knobs); TD3 declares neither."""
     key = override[1:].split("=")[0]
     cfg = compose_cfg(["algo=td3", "env=pendulum", override])
-    with pytest.raises(ConfigError, match=rf"^{key}=.* td3 has no hyperparameter .*\(.*it has lr, "):
+    with pytest.raises(
+        ConfigError, match=rf"^{key}=.* td3 has no hyperparameter .*\(.*it has lr, "
+    ):
         validate(cfg)
 
 

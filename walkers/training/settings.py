@@ -7,6 +7,10 @@ follows from it:
 - the run-setting block of ``conf/train.yaml``, each value commented with its doc
   (:func:`write_train_yaml`, ``make menus``; a test holds it in step with the declaration). The
   rest of that file (the defaults list, ``pruning``, ``trial``, ``hydra``) is written by hand;
+- the help of ``python -m walkers.train --help``, ``conf/hydra/help/train.yaml`` (Hydra's
+  ``hydra.help``, chosen in ``conf/train.yaml``'s defaults list; :func:`write_help_yaml`, ``make
+  menus``): each setting with its doc, then the config groups of that defaults list (their options
+  read from disk when the help prints), examples, and last the keys walkers and its sweepers set;
 - the check of a composed config (:data:`RULES`, run by ``walkers.training.validate``): a
   one-line error naming the key, the bad value and what is allowed;
 - what a run's book reads (:meth:`RunSettings.of`: the settings a composed config gives).
@@ -20,7 +24,9 @@ follows from it:
 
 from __future__ import annotations
 
+import re
 import sys
+import textwrap
 from dataclasses import dataclass, fields
 from pathlib import Path
 
@@ -175,10 +181,13 @@ HEADING = (
 )
 
 
+#: What the ``algo`` group's options need to know: the offline algorithms.
+OFFLINE_DOC = f"{', '.join(OFFLINE)}: offline, need dataset="
+
+
 def algorithms_comment() -> str:
     """The comment of the defaults list's ``algo`` line: every declared algorithm."""
-    offline = ", ".join(OFFLINE)
-    return f"# {' | '.join(SCHEMAS)} ({offline}: offline, need dataset=)"
+    return f"# {' | '.join(SCHEMAS)} ({OFFLINE_DOC})"
 
 
 def train_yaml(text: str) -> str:
@@ -214,5 +223,153 @@ def write_train_yaml(conf_dir=None, check: bool = False) -> list[str]:
     return [str(path)]
 
 
+#: Where :func:`write_help_yaml` writes the help of ``walkers.train``, under ``conf/``.
+HELP_YAML = Path("hydra") / "help" / "train.yaml"
+HELP_WIDTH = 100  # the help's lines fit a terminal this wide
+HELP_COLUMN = 24  # where the docs start, after ``key=default``
+#: Run settings that walkers sets itself: --help lists them last, beside the sweepers' keys.
+SET_BY_WALKERS = ("job_key",)
+HELP_HEADER = (
+    "python -m walkers.train [-m] [key=value ...]: train one agent on one environment, logged to "
+    "MLflow. Set a run setting as key=value, pick a config group's option as group=option; -m: "
+    "several runs at once (seed=0,1,2), a sweep or a study."
+)
+HELP_FOOTER = (
+    "Every key of the composed config (algo.*, env.*, ...): python -m walkers.train --cfg job "
+    "[overrides]. Hydra's own flags and groups: --hydra-help. The guide: docs/getting-started.md, "
+    "docs/training.md."
+)
+#: The help's examples: a run, a sweep, a study.
+HELP_EXAMPLES = (
+    ("python -m walkers.train algo=sac env=hopper seed=3 total_steps=300000", "one run"),
+    ("python -m walkers.train -m sweeps=td3_walker2d", "an Optuna sweep (sweeps/)"),
+    ("python -m walkers.train -m ab=tiny hydra/launcher=joblib", "an A/B study to its verdict"),
+)
+
+
+def _literal(text: str) -> str:
+    """``text`` as it reads in the help template: ``$`` escaped for Hydra's string.Template, then
+    ``${`` for OmegaConf, which resolves the template before it (``work_dir``'s default)."""
+    return text.replace("$", "$$").replace("${", "\\${")
+
+
+def _item(head: str, doc: str) -> list[str]:
+    """``head`` (``key=default``) and ``doc`` wrapped beside it from :data:`HELP_COLUMN`; a head
+    too wide for the column gets a line of its own."""
+    pad = " " * HELP_COLUMN
+    text = " ".join(doc.split())  # a doc's line breaks are those of its yaml comment
+    lines = textwrap.wrap(
+        text, HELP_WIDTH, initial_indent=pad, subsequent_indent=pad, break_on_hyphens=False
+    )
+    if not lines:
+        return [_literal(head)] if head else []
+    if len(head) <= HELP_COLUMN - 2:
+        lines[0] = head + lines[0][len(head) :]
+    else:
+        lines.insert(0, head)
+    return [_literal(line) for line in lines]
+
+
+def _comment(line: str) -> str:
+    return line.split("#", 1)[1].strip() if "#" in line else ""
+
+
+def help_template(train: str) -> str:
+    """The template of ``python -m walkers.train --help``, from the declared run settings and
+    ``train`` (the text of ``conf/train.yaml``: its defaults list's groups, ``pruning`` and
+    ``trial``). A group's options are read from disk when the help prints them
+    (``${walkers.options:GROUP,COLUMN}``, :func:`walkers.config_options`)."""
+    defaults = RunSettings()
+    lines = [
+        "${hydra.help.header}",
+        "== Run settings: key=default (any of them on the command line) ==",
+    ]
+    for f in fields(RunSettings):
+        if f.name not in SET_BY_WALKERS:
+            head = f"{f.name}={yaml_value(getattr(defaults, f.name))}"
+            lines += _item(head, f.metadata["doc"])
+    lines += ["", "== Config groups: group=default, then its options (group=option) =="]
+    defaults_list = train.split("\ndefaults:\n", 1)[1].split("\n\n", 1)[0]
+    for line in defaults_list.split("\n"):
+        group = re.match(r"  - (\w+): (\S+)", line)  # not _self_, not an override of hydra/
+        if group:
+            head = f"{group[1]}={group[2]}"
+            doc = OFFLINE_DOC if group[1] == "algo" else _comment(line)
+            options = "${walkers.options:" + f"{group[1]},{HELP_COLUMN}" + "}"
+            lines += [head.ljust(HELP_COLUMN) + options] + _item("", doc)
+    lines += ["", "== Examples =="]
+    width = max(len(command) for command, _ in HELP_EXAMPLES)
+    lines += [f"{command.ljust(width)}  # {what}" for command, what in HELP_EXAMPLES]
+    lines += ["", "== Set by walkers, its sweepers and sweeps/*.yaml (listed for reference) =="]
+    for f in fields(RunSettings):
+        if f.name in SET_BY_WALKERS:
+            lines += _item(f"{f.name}={yaml_value(getattr(defaults, f.name))}", f.metadata["doc"])
+    composed = OmegaConf.create(train)
+    for key in ("pruning", "trial"):
+        doc = _comment(next(line for line in train.split("\n") if line.startswith(f"{key}:")))
+        keys = ", ".join(
+            f"{key}.{sub}" + ("" if value is None else f"={yaml_value(value)}")
+            for sub, value in composed[key].items()
+        )
+        lines += _item(f"{key}.*", f"{doc}: {keys}")
+    lines += _item(
+        "hydra.*",
+        "Hydra's own settings and groups (hydra/launcher=joblib: a multirun's "
+        "jobs in parallel): --hydra-help",
+    )
+    lines += ["", "${hydra.help.footer}"]
+    return "\n".join(lines)
+
+
+def _block(lines: list[str]) -> str:
+    """``lines`` as a yaml block scalar's (``key: |``) indented text."""
+    return "\n".join(f"  {line}".rstrip() for line in lines)
+
+
+def help_yaml(train: str) -> str:
+    """The text of ``conf/hydra/help/train.yaml`` (see :func:`help_template`)."""
+    header, footer = (
+        _literal(textwrap.fill(text, HELP_WIDTH)) for text in (HELP_HEADER, HELP_FOOTER)
+    )
+    return "\n".join(
+        [
+            "# `python -m walkers.train --help` (Hydra's hydra.help, chosen in conf/train.yaml's "
+            "defaults list):",
+            "# written by `make menus` from walkers/training/settings.py and conf/train.yaml "
+            "(edit them there).",
+            "# ${walkers.options:GROUP,COLUMN}: a group's options, read from disk as the help "
+            "prints.",
+            "app_name: walkers.train",
+            "header: |",
+            _block(header.split("\n")),
+            "footer: |-",  # the template ends the line
+            _block(footer.split("\n")),
+            "template: |",
+            _block(help_template(train).split("\n")),
+            "",
+        ]
+    )
+
+
+def write_help_yaml(conf_dir=None, check: bool = False) -> list[str]:
+    """Write the help of ``walkers.train`` into ``<conf_dir>/hydra/help/train.yaml`` (default:
+    the project's ``conf/``) from ``<conf_dir>/train.yaml``; with ``check``, write nothing.
+    Returns the file when it was out of step, else nothing."""
+    conf = Path(conf_dir or PROJECT_ROOT / "conf")
+    path = conf / HELP_YAML
+    written = help_yaml((conf / "train.yaml").read_text())
+    if path.is_file() and path.read_text() == written:
+        return []
+    if not check:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(written)
+    return [str(path)]
+
+
+def write_all(conf_dir=None, check: bool = False) -> list[str]:
+    """``make menus``: conf/train.yaml's run settings, then the help written from it."""
+    return write_train_yaml(conf_dir, check) + write_help_yaml(conf_dir, check)
+
+
 if __name__ == "__main__":  # make menus
-    sys.exit(menus.main(write_train_yaml, "walkers/training/settings.py", sys.argv[1:]))
+    sys.exit(menus.main(write_all, "walkers/training/settings.py", sys.argv[1:]))

@@ -30,28 +30,41 @@ help:  ## list the make targets and the Makefile's options
 		print (length(line) > 100 ? substr(line, 1, 97) "..." : line)}'
 	@printf '%s\n' '' \
 		'Options, as make TARGET VAR=value: ARGS="..." adds arguments (make train ARGS="seed=3"),' \
-		'PYTHON is the Python of a new .venv (make install PYTHON=python3.12), MLFLOW_PORT (ui, stack),' \
+		'PYTHON is the Python of a new .venv (make install PYTHON=python3.12), TORCH_INDEX where its' \
+		'torch comes from (CPU build: https://download.pytorch.org/whl/cpu), MLFLOW_PORT (ui, stack),' \
 		"BENCH_*, BASELINE_*, ORIGINAL_DIR, NEWEST_PYTHON (their targets'): docs/make-targets.md"
 
-# Quiet: errors only (pip's -qq also silences the build backend's notes on editable installs).
+# Quiet but for a line before and after: pip's -qq also silences the build backend's notes on
+# editable installs. TORCH_INDEX: where torch comes from first (PyTorch's own index for the CPU
+# build, docs/dependencies.md); empty: the registry's, which on Linux is the CUDA build.
+TORCH_PIN := $(shell grep -o '"torch==[^"]*"' pyproject.toml | tr -d '"')
+TORCH_INDEX ?=
 $(STAMP): pyproject.toml
 	@$(PYTHON) -m venv $(VENV)
 	@$(VENV)/bin/pip install -qq --upgrade pip
+	@echo "installing walkers into $(VENV) with $(TORCH_PIN) $(if $(TORCH_INDEX),from $(TORCH_INDEX),from the registry (on Linux its CUDA build, about 3.4 GB, unless a local wheel is found; CPU only: TORCH_INDEX=https://download.pytorch.org/whl/cpu)): a few minutes"
+	@$(if $(TORCH_INDEX),$(VENV)/bin/pip install -qq $(TORCH_PIN) --index-url $(TORCH_INDEX),true)
 	@$(VENV)/bin/pip install -qq -e '.[dev]'
+	@$(VENV)/bin/python -c "import torch; print(f'installed torch {torch.__version__}:', f'CUDA {torch.version.cuda} build' if torch.version.cuda else 'CPU build')"
 	@touch $(STAMP)
 
 install: $(STAMP)  ## create .venv and install walkers with pinned dependencies
 
+# A Ctrl-C ends a training target quietly: walkers has said "interrupted: ..." and how the same
+# command continues, and its exit status 130 is no failure for make to add a line about. Any
+# other failure stays one, with its own status.
+CTRL_C_QUIET = || { rc=$$?; [ $$rc = 130 ] || exit $$rc; }
+
 train: $(STAMP)  ## the main job: TD3 on Walker2d-v5, 1M steps, logged to ./mlflow.db
-	$(PY) -m walkers.train $(ARGS)
+	$(PY) -m walkers.train $(ARGS) $(CTRL_C_QUIET)
 
 ab: $(STAMP)  ## a small A/B in minutes: REINFORCE vs TD3 on Pendulum, 5 seeds, a report
-	$(PY) -m walkers.train -m experiment=ab_pendulum hydra/launcher=joblib $(ARGS)
-	$(PY) -m walkers.compare env=pendulum algos=[reinforce,td3] tracking.experiment=ab_pendulum
+	$(PY) -m walkers.train -m experiment=ab_pendulum hydra/launcher=joblib $(ARGS) \
+		&& $(PY) -m walkers.compare env=pendulum algos=[reinforce,td3] tracking.experiment=ab_pendulum $(CTRL_C_QUIET)
 
 ab-all: $(STAMP)  ## the extended A/B: 5 algorithms x 5 seeds on InvertedPendulum, a report
-	$(PY) -m walkers.train -m experiment=ab_all_inverted_pendulum hydra/launcher=joblib $(ARGS)
-	$(PY) -m walkers.compare env=inverted_pendulum algos=[reinforce,ppo,ddpg,td3,sac] tracking.experiment=ab_all_inverted_pendulum
+	$(PY) -m walkers.train -m experiment=ab_all_inverted_pendulum hydra/launcher=joblib $(ARGS) \
+		&& $(PY) -m walkers.compare env=inverted_pendulum algos=[reinforce,ppo,ddpg,td3,sac] tracking.experiment=ab_all_inverted_pendulum $(CTRL_C_QUIET)
 
 offline: $(STAMP)  ## offline RL in minutes: TD3 -> Minari dataset -> Decision Transformer
 	$(PY) -m walkers.train experiment=offline_pendulum_td3 $(ARGS)
@@ -60,15 +73,15 @@ offline: $(STAMP)  ## offline RL in minutes: TD3 -> Minari dataset -> Decision T
 	$(PY) -m walkers.compare env=pendulum algos=[td3,dt] tracking.experiment=offline_pendulum
 
 study: $(STAMP)  ## an A/B study in rounds to its verdict in minutes; rerun to continue
-	$(PY) -m walkers.train -m ab=tiny hydra/launcher=joblib $(ARGS)
+	$(PY) -m walkers.train -m ab=tiny hydra/launcher=joblib $(ARGS) $(CTRL_C_QUIET)
 
 baseline: $(STAMP)  ## one algorithm's 1M-step baseline (3 envs x 3 seeds); rerun to continue
-	$(PY) -m walkers.train -m algo=$(BASELINE_ALGO) 'env=$(BASELINE_ENVS)' 'seed=$(BASELINE_SEEDS)' total_steps=$(BASELINE_STEPS) torch_threads=1 progress=false 'job_key="baseline/$(BASELINE_ALGO)/$${env.id}/{seed}"' 'tracking.run_name="baseline-$(BASELINE_ALGO)-$${env.id}-s{seed}"' tracking.experiment=baseline_$(BASELINE_ALGO) tracking.uri=$(BASELINE_STORE) $(ARGS)
+	$(PY) -m walkers.train -m algo=$(BASELINE_ALGO) 'env=$(BASELINE_ENVS)' 'seed=$(BASELINE_SEEDS)' total_steps=$(BASELINE_STEPS) torch_threads=1 progress=false 'job_key="baseline/$(BASELINE_ALGO)/$${env.id}/{seed}"' 'tracking.run_name="baseline-$(BASELINE_ALGO)-$${env.id}-s{seed}"' tracking.experiment=baseline_$(BASELINE_ALGO) tracking.uri=$(BASELINE_STORE) $(ARGS) $(CTRL_C_QUIET)
 
 study-original: $(STAMP)  ## the original study at 1M steps, at nice 19, in ~/.walkers/original
 	@mkdir -p $(ORIGINAL_DIR)
 	$(PY) -m walkers.ingest bundle=results/reinforce_walker2d/bundle tracking.uri=sqlite:///$(ORIGINAL_DIR)/mlflow.db
-	WALKERS_WORK_DIR=$(ORIGINAL_DIR)/work nice -n 19 $(PY) -m walkers.train -m ab=original hydra/launcher=joblib hydra.launcher.n_jobs=$(CORES) torch_threads=1 tracking.uri=sqlite:///$(ORIGINAL_DIR)/mlflow.db 'hydra.sweep.dir=$(ORIGINAL_DIR)/multirun/$${now:%Y-%m-%d_%H-%M-%S}' $(ARGS)
+	WALKERS_WORK_DIR=$(ORIGINAL_DIR)/work nice -n 19 $(PY) -m walkers.train -m ab=original hydra/launcher=joblib hydra.launcher.n_jobs=$(CORES) torch_threads=1 tracking.uri=sqlite:///$(ORIGINAL_DIR)/mlflow.db 'hydra.sweep.dir=$(ORIGINAL_DIR)/multirun/$${now:%Y-%m-%d_%H-%M-%S}' $(ARGS) $(CTRL_C_QUIET)
 
 compare: $(STAMP)  ## an A/B report from finished runs (ARGS="env=... algos=[...] ...")
 	$(PY) -m walkers.compare $(ARGS)
@@ -76,8 +89,10 @@ compare: $(STAMP)  ## an A/B report from finished runs (ARGS="env=... algos=[...
 plan: $(STAMP)  ## how many seeds a study needs, from pilot runs
 	$(PY) -m walkers.plan $(ARGS)
 
+# The default suite: everything but the long, fault, cluster and browser tests (their own targets).
+DEFAULT_SUITE := -n auto --dist loadscope -m "not cluster and not browser and not faults and not slow"
 test: $(STAMP)  ## the test suite: real tiny trainings, sweeps, offline RL, reports
-	$(PY) -m pytest -q -n auto --dist loadscope --durations=10 -m "not cluster and not browser and not faults and not slow" $(ARGS)
+	$(PY) -m pytest -q --durations=10 $(DEFAULT_SUITE) $(ARGS)
 
 test-slow: $(STAMP)  ## the long end-to-end tests (marker slow; CI runs them)
 	$(PY) -m pytest -q -n auto --dist loadscope --durations=10 -m slow $(ARGS)
@@ -90,10 +105,10 @@ test-faults: $(STAMP)  ## the fault tests: kill -9, SIGTERM, a tracking server t
 NEWEST_PYTHON ?= $(firstword $(shell python3.13 -c 'import sys; print(sys.executable)' 2>/dev/null) $(wildcard $(HOME)/.pyenv/versions/3.13*/bin/python3.13))
 NEWEST_VENV := .venv-newest
 
-test-newest-python:  ## the foundation and training tests on Python 3.13, in .venv-newest
+test-newest-python:  ## make test's suite on Python 3.13, in .venv-newest (CI runs it)
 	@test -n "$(NEWEST_PYTHON)" || { echo "error: no python3.13 on the PATH or in ~/.pyenv/versions: install Python 3.13 (e.g. pyenv install 3.13), or pass NEWEST_PYTHON=<its path>" >&2; exit 2; }
 	@test -f $(NEWEST_VENV)/.installed || { $(NEWEST_PYTHON) -m venv $(NEWEST_VENV) && $(NEWEST_VENV)/bin/pip install -qq --upgrade pip && $(NEWEST_VENV)/bin/pip install -qq -e '.[dev]' && touch $(NEWEST_VENV)/.installed; }
-	$(NEWEST_VENV)/bin/python -m pytest -q -n auto --dist loadscope -m "not cluster and not browser and not faults and not slow" tests/test_config.py tests/test_bad_input.py tests/test_random_streams.py tests/data tests/training tests/agents/test_resume_every_algorithm.py $(ARGS)
+	$(NEWEST_VENV)/bin/python -m pytest -q $(DEFAULT_SUITE) $(ARGS)
 
 ui-check: $(STAMP)  ## MLflow links and the docs site in a real headless Chromium
 	@command -v chromium >/dev/null || (apt-get update -qq && apt-get install -y -qq chromium >/dev/null)

@@ -172,6 +172,7 @@ class TrainingRun:
             raise
         if cfg.tracking.get("system_metrics"):
             tracker.start_system_metrics(cfg.tracking.system_metrics_every)
+        log.info("MLflow run %s: follow it live with `make ui`, then %s", run.run_id, run.url)
         return run
 
     def _write_config(self, cfg: DictConfig) -> None:

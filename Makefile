@@ -50,9 +50,9 @@ $(STAMP): pyproject.toml
 
 install: $(STAMP)  ## create .venv and install walkers with pinned dependencies
 
-# A Ctrl-C ends a training target quietly: walkers has said "interrupted: ..." and how the same
-# command continues, and its exit status 130 is no failure for make to add a line about. Any
-# other failure stays one, with its own status.
+# A Ctrl-C ends a training target quietly: walkers' "interrupted: ..." line, which says how the
+# same command continues, is the last (its exit status 130 is not made an error). Any other
+# failure stays one, with its own status.
 CTRL_C_QUIET = || { rc=$$?; [ $$rc = 130 ] || exit $$rc; }
 
 train: $(STAMP)  ## the main job: TD3 on Walker2d-v5, 1M steps, logged to ./mlflow.db

@@ -56,7 +56,8 @@ def settings_checked(cfg: DictConfig) -> None:
     creates nothing (what needs the store, a run to continue say, is checked in the job)."""
     from walkers.training.validate import validate
 
-    validate(cfg, warn=False)
+    if not cfg.resume:  # a resumed run's values are its stored config's, read from the store
+        validate(cfg, warn=False)
 
 
 def forget_output_dir() -> None:

@@ -124,6 +124,42 @@ def test_signals_to_the_whole_group_while_it_ends_leave_it_killed_with_its_check
     killed_with_checkpoint_then_resumed(store, run)
 
 
+def test_ctrl_c_under_make_train_ends_on_walkers_line_without_make_s_error(store):
+    """Ctrl-C in the terminal under `make train` (SIGINT to make, its shell and python): the last
+    line is walkers' `interrupted: ...`, with no `make: *** [...] Error 130` after it, and make
+    still ends by the signal; another failure stays make's error, with its own status."""
+
+    def make_train(*args: str, **popen) -> subprocess.Popen:
+        args = [*args, *store["overrides"], f"hydra.run.dir={store['path']}/out"]
+        return subprocess.Popen(
+            # -o: the .venv running this test is the one to train with (no reinstall)
+            ["make", "-s", "-C", str(PROJECT_ROOT), "-o", ".venv/.installed", "train",
+             f"ARGS={' '.join(args)}"],
+            cwd=store["path"],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env={k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"},
+            **popen,
+        )  # fmt: skip
+
+    proc = make_train(*LONG_RUN, start_new_session=True)
+    try:
+        wait_for_uploaded_checkpoint(proc, store["path"], "best.pt")
+        os.killpg(proc.pid, signal.SIGINT)
+        _, stderr = proc.communicate(timeout=180)
+    finally:
+        proc.kill()
+    assert proc.returncode == -signal.SIGINT, stderr[-3000:]
+    assert stderr.strip().splitlines()[-1].startswith("interrupted: MLflow run(s)"), stderr[-3000:]
+    assert "Error 130" not in stderr
+
+    failed = make_train(*LONG_RUN, "total_steps=0")
+    _, stderr = failed.communicate(timeout=120)
+    assert failed.returncode == 2 and "total_steps=0 is not allowed" in stderr, stderr[-3000:]
+    assert "] Error 2" in stderr
+
+
 def test_ctrl_c_of_a_keyed_joblib_multirun_ends_its_runs_and_the_same_command_continues_them(
     store,
 ):

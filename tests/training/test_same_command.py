@@ -6,6 +6,7 @@ may change on resume (:func:`walkers.training.attempts.command_key`)."""
 from __future__ import annotations
 
 import logging
+import re
 import signal
 
 import pytest
@@ -132,6 +133,38 @@ def test_a_ctrl_c_of_a_run_says_which_run_it_ended(store):
         f"interrupted: MLflow run(s) {run.info.run_id} marked KILLED; the same command continues "
         "from the last checkpoint"
     ) in result.stderr
+
+
+def test_the_same_command_continues_a_stopped_run_in_one_info_line_its_bar_where_it_was(store):
+    """A run Ctrl-C'd at step 543, after its evaluation at 500, then its command again: the log
+    says it continues in a routine INFO line (no warning), and the progress bar starts at the
+    run's step with that evaluation's return, as the stopped session's bar ended."""
+    args = [*RUN, "total_steps=700", "progress=true", *store["overrides"]]
+    stopped = run_cli_signalled_after(
+        args, store["path"], "walkers.training.bookkeeping:RunBook.after_step", calls=543
+    )
+    assert stopped.returncode == 130, stopped.stderr[-2000:]
+    (run,) = all_runs(store["client"])
+    (evaluation,) = store["client"].get_metric_history(run.info.run_id, "eval/return_mean")
+    assert evaluation.step == 500
+    shown = f"eval_return={evaluation.value:.1f}"
+    assert "543/700" in _bar_lines(stopped.stderr)[-1]  # the step its checkpoint holds
+
+    again = run_cli(args, cwd=store["path"])
+    assert again.returncode == 0, again.stderr[-2000:]
+    assert (
+        f"[walkers][INFO] - this command ran before as run(s) {run.info.run_id} (KILLED): "
+        "continuing it from its last checkpoint"
+    ) in again.stdout
+    assert "[walkers][WARNING]" not in again.stdout
+    first, *_ = _bar_lines(again.stderr)
+    assert re.search(rf"\b543/700 .*{re.escape(shown)}\]", first), first
+    assert "700/700" in _bar_lines(again.stderr)[-1]
+
+
+def _bar_lines(stderr: str) -> list[str]:
+    """The progress bar's lines (tqdm redraws a line after a carriage return)."""
+    return [line for line in re.split(r"[\r\n]", stderr) if "/700 [" in line]
 
 
 @pytest.mark.faults  # `make test-faults`

@@ -223,7 +223,7 @@ def continue_earlier_attempt(
         )
         supersede(client, cfg.work_dir, ids, f"{problem}: the job ran again as new run(s)")
         return cfg
-    log.warning(
+    log.info(  # routine: a killed run's command, run again
         "%s ran before as run(s) %s (%s): continuing it from its last checkpoint",
         what,
         ", ".join(ids),

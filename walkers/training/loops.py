@@ -250,9 +250,15 @@ def _progress_bar(book: RunBook, bar: tqdm) -> None:
     """After an evaluation the bar shows its return; every 100 steps it moves."""
     step = book.progress.step
     if step in book.progress.eval_steps[-1:]:
-        bar.set_postfix(eval_return=f"{book.progress.eval_means[-1]:.1f}", refresh=False)
+        bar.set_postfix(_latest_evaluation(book), refresh=False)
     if step % 100 == 0:
         bar.update(step - bar.n)
+
+
+def _latest_evaluation(book: RunBook) -> dict[str, str]:
+    """The bar's field for the run's latest evaluation (a resumed run's: its checkpoint's)."""
+    means = book.progress.eval_means
+    return {"eval_return": f"{means[-1]:.1f}"} if means else {}
 
 
 def _running(
@@ -268,9 +274,10 @@ def _running(
     """
     first = books[0]
     s, p = first.settings, first.progress
-    bar = tqdm(
+    bar = tqdm(  # a resumed run's bar starts at its step, with its latest evaluation's return
         total=s.total_steps,
         initial=p.step,
+        postfix=_latest_evaluation(first),
         unit=first.axis.unit,
         disable=not s.progress,
         dynamic_ncols=True,
@@ -286,7 +293,8 @@ def _running(
             for book in books:
                 book.checkpoint_and_flush()
             raise
-        finally:
+        finally:  # the bar's last line: the step the run ended at (or its checkpoint holds)
+            bar.update(p.step - bar.n)
             bar.close()
     if p.step == start_step:  # resumed at its budget: nothing ran, no rate
         return [book.finish(None) for book in books]

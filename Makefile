@@ -73,10 +73,10 @@ offline: $(STAMP)  ## offline RL in minutes: TD3 -> Minari dataset -> Decision T
 	$(PY) -m walkers.compare env=pendulum algos=[td3,dt] tracking.experiment=offline_pendulum
 
 study: $(STAMP)  ## an A/B study in rounds to its verdict in minutes; rerun to continue
-	$(PY) -m walkers.train -m ab=tiny hydra/launcher=joblib $(ARGS) $(CTRL_C_QUIET)
+	$(PY) -m walkers.train -m ab=tiny $(ARGS) $(CTRL_C_QUIET)
 
 baseline: $(STAMP)  ## one algorithm's 1M-step baseline (3 envs x 3 seeds); rerun to continue
-	$(PY) -m walkers.train -m algo=$(BASELINE_ALGO) 'env=$(BASELINE_ENVS)' 'seed=$(BASELINE_SEEDS)' total_steps=$(BASELINE_STEPS) torch_threads=1 progress=false 'job_key="baseline/$(BASELINE_ALGO)/$${env.id}/{seed}"' 'tracking.run_name="baseline-$(BASELINE_ALGO)-$${env.id}-s{seed}"' tracking.experiment=baseline_$(BASELINE_ALGO) tracking.uri=$(BASELINE_STORE) $(ARGS) $(CTRL_C_QUIET)
+	$(PY) -m walkers.train -m algo=$(BASELINE_ALGO) 'env=$(BASELINE_ENVS)' 'seed=$(BASELINE_SEEDS)' total_steps=$(BASELINE_STEPS) hydra/launcher=joblib progress=false 'job_key="baseline/$(BASELINE_ALGO)/$${env.id}/{seed}"' 'tracking.run_name="baseline-$(BASELINE_ALGO)-$${env.id}-s{seed}"' tracking.experiment=baseline_$(BASELINE_ALGO) tracking.uri=$(BASELINE_STORE) $(ARGS) $(CTRL_C_QUIET)
 
 study-original: $(STAMP)  ## the original study at 1M steps, at nice 19, in ~/.walkers/original
 	@mkdir -p $(ORIGINAL_DIR)
@@ -128,6 +128,9 @@ bench: $(STAMP)  ## the TD3 update vs a plain eager implementation
 
 bench-population: $(STAMP)  ## a population's lockstep step per member, K = 1, 4, 16
 	$(PY) benchmarks/bench_population.py --split $(ARGS)
+
+bench-threads: $(STAMP)  ## walkers.train's rate per torch thread setting, idle and 1 core busy
+	$(PY) benchmarks/bench_threads.py $(ARGS)
 
 bench-throughput: $(STAMP)  ## env steps/s of walkers vs Stable-Baselines3 on Walker2d
 	$(PY) benchmarks/bench_throughput.py $(ARGS)

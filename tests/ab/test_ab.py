@@ -4,6 +4,8 @@ of the driver, and the rerun that picks up where it stopped."""
 from __future__ import annotations
 
 import collections
+import itertools
+import os
 import re
 
 import pytest
@@ -40,6 +42,12 @@ def test_an_obvious_difference_stops_at_the_minimum_seeds_and_a_rerun_runs_nothi
     assert parent.data.tags["answer.short_vs_long_on_pendulum"] == "A better"
     assert "short is better than long on pendulum (5 seeds per arm" in result.stdout
     assert "?workflowType=machine_learning" in result.stdout  # the link opens the runs view
+    # by default a round's jobs run side by side, one a core, one torch thread each
+    assert {r.data.params["torch_threads"] for r in runs} == {"1"}
+    assert len({r.data.tags["walkers.multirun_job"] for r in runs}) == 10
+    spans = sorted((r.info.start_time, r.info.end_time) for r in runs)
+    overlapping = any(later[0] < earlier[1] for earlier, later in itertools.pairwise(spans))
+    assert overlapping == ((os.cpu_count() or 1) > 1), spans
     for arm in ("short", "long"):  # what each arm cost: the sum of its runs' own counts
         spent = sum(
             r.data.metrics["final/cpu_hours"]

@@ -32,6 +32,7 @@ def ab_store(tmp_path_factory, _empty_store_file):
             "-m",
             "hydra/launcher=joblib",
             "hydra.launcher.n_jobs=2",
+            "torch_threads=null",  # all cores, shared out among the parallel jobs
             f"algo={','.join(ALGOS)}",
             "seed=0,1",
             "env=pendulum",

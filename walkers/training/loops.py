@@ -247,12 +247,45 @@ def _after_step(book: RunBook, losses: dict[str, torch.Tensor], bar: tqdm) -> bo
 
 
 def _progress_bar(book: RunBook, bar: tqdm) -> None:
-    """After an evaluation the bar shows its return; every 100 steps it moves."""
+    """After an evaluation the bar shows its return; every 100 steps it moves, with its ETA."""
     step = book.progress.step
-    if step in book.progress.eval_steps[-1:]:
-        bar.set_postfix(_latest_evaluation(book), refresh=False)
-    if step % 100 == 0:
+    if step % 100 == 0 or step in book.progress.eval_steps[-1:]:
+        bar.set_postfix(bar.eta.fields(step) | _latest_evaluation(book), refresh=False)
         bar.update(step - bar.n)
+
+
+class ProgressBar(tqdm):
+    """tqdm with the time left as :class:`PhaseEta` counts it."""
+
+    def __init__(self, eta: PhaseEta, **kwargs):
+        self.eta = eta
+        super().__init__(**kwargs)
+
+
+class PhaseEta:
+    """The bar's time left, each phase at its own rate. An off-policy run's first steps (random
+    actions, no updates: ``agent.update_after``) run many times faster than its learning phase,
+    so a rate over both (tqdm's own ETA) said minutes for a run of hours. During the warm-up the
+    bar says when learning starts; from then on, the time left is the steps left at the rate
+    measured since learning started in this session (evaluations included)."""
+
+    def __init__(self, total: int, learning_from: int):
+        self.total, self.learning_from = total, learning_from
+        self.mark: tuple[int, float] | None = None  # this session's first learning step, time
+
+    def fields(self, step: int, now: float | None = None) -> dict[str, str]:
+        now = time.perf_counter() if now is None else now
+        if step >= self.total:
+            return {}
+        if step < self.learning_from:
+            return {"eta": f"after the warm-up to step {self.learning_from:,}"}
+        if self.mark is None:
+            self.mark = (step, now)
+        start, then = self.mark
+        if step - start < 100 or now <= then:
+            return {"eta": "measuring the learning phase"}
+        rate = (step - start) / (now - then)
+        return {"eta": tqdm.format_interval((self.total - step) / rate)}
 
 
 def _latest_evaluation(book: RunBook) -> dict[str, str]:
@@ -274,14 +307,17 @@ def _running(
     """
     first = books[0]
     s, p = first.settings, first.progress
-    bar = tqdm(  # a resumed run's bar starts at its step, with its latest evaluation's return
+    eta = PhaseEta(s.total_steps, getattr(first.agent, "update_after", 0))
+    bar = ProgressBar(  # a resumed run's bar starts at its step, with its latest evaluation's
+        eta,  # return
         total=s.total_steps,
         initial=p.step,
-        postfix=_latest_evaluation(first),
+        postfix=eta.fields(p.step) | _latest_evaluation(first),
         unit=first.axis.unit,
         disable=not s.progress,
         dynamic_ncols=True,
         mininterval=1.0,
+        bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt} [{elapsed}, {rate_fmt}{postfix}]",
     )
     start_step, start = p.step, time.perf_counter()
     for book in books:

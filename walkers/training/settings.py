@@ -115,9 +115,10 @@ class RunSettings:
     )
     device: str = hp("auto", _listed(DEVICES), " | ".join(DEVICES))
     torch_threads: int | None = hp(
-        None,
+        1,
         or_null(POSITIVE_INT),
-        "torch intra-op threads; null: all cores, shared out among parallel sweep jobs",
+        "torch intra-op threads; 1 holds up when another program takes a core (more threads "
+        "then run 2-3x slower: docs/speed.md); null: all cores, shared out among parallel jobs",
     )
     video_every: int = hp(
         0,
@@ -243,7 +244,7 @@ HELP_FOOTER = (
 HELP_EXAMPLES = (
     ("python -m walkers.train algo=sac env=hopper seed=3 total_steps=300000", "one run"),
     ("python -m walkers.train -m sweeps=td3_walker2d", "an Optuna sweep (sweeps/)"),
-    ("python -m walkers.train -m ab=tiny hydra/launcher=joblib", "an A/B study to its verdict"),
+    ("python -m walkers.train -m ab=tiny", "an A/B study to its verdict"),
 )
 
 

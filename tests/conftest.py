@@ -6,6 +6,7 @@ import atexit
 import functools
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
@@ -160,6 +161,19 @@ def wait_for_uploaded_checkpoint(
         assert proc.poll() is None, proc.communicate()[1][-2000:]
         assert time.monotonic() < deadline, f"no {name} within {timeout} s"
         time.sleep(0.2)
+
+
+def interrupt_group_once_checkpointed(
+    proc: subprocess.Popen, store_path: Path, checkpoint: str
+) -> str:
+    """Ctrl-C to ``proc``'s whole process group (as a terminal sends it: a ``make`` and its
+    training, a population and its env workers) once ``checkpoint`` is uploaded; its stderr."""
+    try:
+        wait_for_uploaded_checkpoint(proc, store_path, checkpoint)
+        os.killpg(proc.pid, signal.SIGINT)
+        return proc.communicate(timeout=180)[1]
+    finally:
+        proc.kill()
 
 
 def signal_once_checkpointed(

@@ -11,6 +11,7 @@ import pytest
 
 from tests.conftest import (
     all_runs,
+    interrupt_group_once_checkpointed,
     run_cli,
     signal_once_checkpointed,
     spawn_cli,
@@ -144,12 +145,7 @@ def test_ctrl_c_under_make_train_ends_on_walkers_line_without_make_s_error(store
         )  # fmt: skip
 
     proc = make_train(*LONG_RUN, start_new_session=True)
-    try:
-        wait_for_uploaded_checkpoint(proc, store["path"], "best.pt")
-        os.killpg(proc.pid, signal.SIGINT)
-        _, stderr = proc.communicate(timeout=180)
-    finally:
-        proc.kill()
+    stderr = interrupt_group_once_checkpointed(proc, store["path"], "best.pt")
     assert proc.returncode == -signal.SIGINT, stderr[-3000:]
     assert stderr.strip().splitlines()[-1].startswith("interrupted: MLflow run(s)"), stderr[-3000:]
     assert "Error 130" not in stderr

@@ -3,7 +3,6 @@ a step, the members' evaluations played together (walkers.training.loops.Lockste
 
 from __future__ import annotations
 
-import os
 import signal
 
 import numpy as np
@@ -15,10 +14,10 @@ from tests.conftest import (
     all_runs,
     compose_cfg,
     feed_members,
+    interrupt_group_once_checkpointed,
     run_cli,
     spawn_cli,
     tiny,
-    wait_for_uploaded_checkpoint,
 )
 from walkers.agents.declarations.schemas import SCHEMAS
 from walkers.agents.factory import defaults_for
@@ -168,12 +167,7 @@ def test_ctrl_c_to_the_process_group_leaves_the_env_workers_to_the_run(store):
     args = ["algo=td3", "env=pendulum", "population=2", "vector_env=async", *TINY,
             "total_steps=3000", *tiny("td3"), *store["overrides"]]  # fmt: skip
     proc = spawn_cli(args, cwd=store["path"], new_session=True)
-    try:
-        wait_for_uploaded_checkpoint(proc, store["path"], "last.pt")
-        os.killpg(proc.pid, signal.SIGINT)
-        _, stderr = proc.communicate(timeout=180)
-    finally:
-        proc.kill()
+    stderr = interrupt_group_once_checkpointed(proc, store["path"], "last.pt")
     assert proc.returncode == 130, stderr[-3000:]
     runs = all_runs(store["client"])
     assert len(runs) == 2 and {r.info.status for r in runs} == {"KILLED"}

@@ -105,10 +105,12 @@ test-faults: $(STAMP)  ## the fault tests: kill -9, SIGTERM, a tracking server t
 NEWEST_PYTHON ?= $(firstword $(shell python3.13 -c 'import sys; print(sys.executable)' 2>/dev/null) $(wildcard $(HOME)/.pyenv/versions/3.13*/bin/python3.13))
 NEWEST_VENV := .venv-newest
 
-test-newest-python:  ## make test's suite on Python 3.13, in .venv-newest (CI runs it)
+test-newest-python: newest-venv  ## make test's suite on Python 3.13, in .venv-newest (CI runs it)
+	$(NEWEST_VENV)/bin/python -m pytest -q $(DEFAULT_SUITE) $(ARGS)
+
+newest-venv:  ## create .venv-newest with Python 3.13 (CI installs it beside make test)
 	@test -n "$(NEWEST_PYTHON)" || { echo "error: no python3.13 on the PATH or in ~/.pyenv/versions: install Python 3.13 (e.g. pyenv install 3.13), or pass NEWEST_PYTHON=<its path>" >&2; exit 2; }
 	@test -f $(NEWEST_VENV)/.installed || { $(NEWEST_PYTHON) -m venv $(NEWEST_VENV) && $(NEWEST_VENV)/bin/pip install -qq --upgrade pip && $(NEWEST_VENV)/bin/pip install -qq -e '.[dev]' && touch $(NEWEST_VENV)/.installed; }
-	$(NEWEST_VENV)/bin/python -m pytest -q $(DEFAULT_SUITE) $(ARGS)
 
 ui-check: $(STAMP)  ## MLflow links and the docs site in a real headless Chromium
 	@command -v chromium >/dev/null || (apt-get update -qq && apt-get install -y -qq chromium >/dev/null)

@@ -12,6 +12,7 @@ from mlflow.utils.validation import validate_param_and_metric_name
 from omegaconf import OmegaConf
 
 from tests.conftest import compose_cfg
+from walkers import tracking
 from walkers.analysis import arms
 from walkers.analysis.comparison import mlflow_key
 from walkers.analysis.pairwise import compare_groups
@@ -313,7 +314,7 @@ def test_a_run_from_before_a_key_existed_joins_the_arm_of_that_keys_old_value(st
     """Runs logged before ``impl`` existed were trained by walkers: they are seeds of the
     impl=walkers arm, not an arm "(not set)" of their own, and a study by impl finds them."""
     client = store["client"]
-    experiment = client.create_experiment("later_keys")
+    experiment = tracking.get_or_create_experiment(client, "later_keys")
 
     def logged(seed: int, **params: str):
         run = client.create_run(experiment, tags={"algo": "td3"})
@@ -339,7 +340,7 @@ def test_a_run_from_before_a_hyperparameter_was_declared_joins_the_arm_of_its_de
     (algo.capture=(not set))" beside "td3 (algo.capture=auto)"; a run that set another value
     stays apart."""
     client = store["client"]
-    experiment = client.create_experiment("declared_later")
+    experiment = tracking.get_or_create_experiment(client, "declared_later")
     base = {"algo._target_": "walkers.agents.td3.TD3", "algo.name": "td3", "algo.lr": "0.001"}
 
     def logged(seed: int, **params: str):

@@ -93,6 +93,7 @@ def test_a_population_job_killed_mid_round_reruns_to_every_seed_once(store):
         store,
         *OBVIOUS_TD3,
         "hydra.sweeper.seeds_as_population=true",
+        "hydra/launcher=basic",  # one population in flight when the driver dies
         "total_steps=2000",
         "checkpoint_every=250",
         "eval_every=250",

@@ -148,7 +148,9 @@ if __name__ == "__main__":
     # started (its trials, its jobs' runs) instead of dying in place, and a second signal waits
     stop_cleanly_on_signals()
     sys.argv[1:] = renamed_overrides(sys.argv[1:])
-    exit_on_bad_overrides("train", check=settings_checked)
+    # a sweep's and a study's sweepers check their jobs' values themselves, in their own words
+    swept = any(o.split("=", 1)[0].lstrip("+") in ("sweeps", "ab") for o in sys.argv[1:])
+    exit_on_bad_overrides("train", check=None if swept else settings_checked)
     try:
         main()
     except KeyboardInterrupt:  # a plain multirun's driver (a run and a study say it themselves)

@@ -185,7 +185,13 @@ class LocalRay:
                          "--ray-client-server-port", str(free_port())]  # fmt: skip
             else:
                 node += [f"--address={self.address}"]
-            done = subprocess.run(node, env=self.env, capture_output=True, text=True, timeout=180)
+            # the nodes start in the cluster's own folder: their workers inherit it as their
+            # working directory, so a job's relative paths (work_dir's default `.walkers`)
+            # land there, not in the folder pytest was started from
+            done = subprocess.run(
+                node, env=self.env, cwd=self.temp_dir, capture_output=True, text=True,
+                timeout=180,
+            )
             if done.returncode != 0:
                 self.stop()
                 raise RuntimeError(f"ray start failed: {(done.stdout + done.stderr)[-3000:]}")

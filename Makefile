@@ -128,14 +128,19 @@ stack: $(STAMP)  ## PostgreSQL + an MLflow server on it, until Ctrl-C
 bench: $(STAMP)  ## the TD3 update vs a plain eager implementation
 	$(PY) benchmarks/bench_update.py $(ARGS)
 
+bench-profile: $(STAMP)  ## where a TD3 learning step of walkers.train goes on one CPU thread
+	$(PY) benchmarks/profile_step.py $(ARGS)
+
 bench-population: $(STAMP)  ## a population's lockstep step per member, K = 1, 4, 16
 	$(PY) benchmarks/bench_population.py --split $(ARGS)
 
 bench-threads: $(STAMP)  ## walkers.train's rate per torch thread setting, idle and 1 core busy
 	$(PY) benchmarks/bench_threads.py $(ARGS)
 
-bench-throughput: $(STAMP)  ## env steps/s of walkers vs Stable-Baselines3 on Walker2d
+bench-throughput: $(STAMP)  ## env steps/s of walkers vs SB3 and SBX: whole machine, then 1 core
+	@$(PY) -c "import sbx" 2>/dev/null || { echo "installing the benchmark extras (SBX, JAX): pip install -e '.[bench]'"; $(PY) -m pip install -qq -e '.[bench]'; }
 	$(PY) benchmarks/bench_throughput.py $(ARGS)
+	taskset -c 0 $(PY) benchmarks/bench_throughput.py --only TD3,SAC,CrossQ $(ARGS)
 
 bench-gpu: $(STAMP)  ## on a GPU machine: the prepared benchmarks, under 9 minutes
 	timeout 90 $(PY) benchmarks/bench_update.py --device cuda --reps 3 --phases
@@ -197,4 +202,4 @@ clean:  ## remove run outputs and caches; keeps .venv and optuna.db
 	rm -rf mlflow.db mlruns mlartifacts outputs multirun .walkers reports .pytest_cache .ruff_cache
 	find . -name __pycache__ -type d -prune -not -path './$(VENV)/*' -exec rm -rf {} +
 
-.PHONY: help install train ab ab-all study baseline baselines-gpu offline-gpu offline compare plan results docs dashboard bench-sequential ui-check test test-slow test-faults test-cluster chaos stack bench bench-population bench-throughput bench-dt bench-learning bench-scale menus lint ui clean
+.PHONY: help install train ab ab-all study baseline baselines-gpu offline-gpu offline compare plan results docs dashboard bench-sequential ui-check test test-slow test-faults test-cluster chaos stack bench bench-profile bench-population bench-throughput bench-dt bench-learning bench-scale menus lint ui clean

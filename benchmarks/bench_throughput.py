@@ -1,13 +1,19 @@
-"""Env steps per second in the learning phase: walkers vs Stable-Baselines3, side by side.
+"""Env steps per second in the learning phase: walkers vs Stable-Baselines3 and SBX, side by side.
 
-    make bench-throughput          # or: .venv/bin/python benchmarks/bench_throughput.py --reps 4
+    make bench-throughput          # the whole machine, then pinned to one core (taskset -c 0)
+    .venv/bin/python benchmarks/bench_throughput.py --reps 4 [--only TD3,SAC]
+
+Each library runs at its own defaults, as its users get it: walkers at one torch thread
+(``torch_threads: 1``), Stable-Baselines3 at torch's default (every core), SBX (Stable-Baselines
+in JAX) at JAX's. Pinned (``taskset -c 0``), all have one core; the per-core process rows are
+left out there.
 
 Walker2d-v5, reference hyperparameters for all (256-256, batch 256, one gradient step per env step,
 lr 3e-4, gamma 0.99, tau 0.005; SAC with the learned temperature, target entropy -|A|, in both).
 Each contender first runs past its warm-up untimed, then the contenders take turns, ``--steps`` env
 steps a round, so machine noise hits all alike. The table gives the median env steps/s and the
 ratio to SB3's TD3 (above 1: faster). Seeds trained together count in aggregate: ``K=`` rows are
-one process with a population of K (2 threads), ``procs x`` rows are one process per core with one
+one process with a population of K, ``procs x`` rows are one process per core with one
 thread each, as a joblib multirun runs them.
 PPO has its own table, against SB3's PPO: both at the reference settings (64-64 tanh, rollouts of
 2048 steps, 10 epochs of 32 minibatches of 64, lr 3e-4, observation and reward normalization: in
@@ -15,8 +21,9 @@ the agent for walkers, ``VecNormalize`` for SB3, as RL-Zoo runs MuJoCo); a round
 rollout and its update. Its ``N envs`` rows are walkers' PPO with ``algo.num_envs=N``: the same
 rollout of 2048 steps, 2048 / N from each of N envs acting as one batch.
 Then: the TD3 update alone, an estimate of its FLOPs, this machine's fp32
-matmul rate, and the memory of a full 1M-transition replay buffer. SB3 is a benchmark-only
-dependency (``pip install -e '.[sb3]'``); without it the SB3 rows are skipped. ``--only PPO``
+matmul rate (one thread), and the memory of a full 1M-transition replay buffer. SB3 and SBX are
+benchmark-only dependencies (``pip install -e '.[sb3]'``, ``'.[bench]'`` for SBX and its JAX:
+never walkers' runtime); without them their rows are skipped. ``--only PPO``
 runs only the contenders with PPO in their name. A benchmark, not a test: nothing here asserts on
 time.
 
@@ -29,7 +36,9 @@ tail.
 from __future__ import annotations
 
 import argparse
+import importlib
 import multiprocessing as mp
+import os
 import time
 from functools import partial
 
@@ -60,9 +69,16 @@ CROSSQ_ROUND = 100  # env steps per round of the CrossQ rows (a 2048-wide update
 DEVICE = "cpu"  # where every contender runs: set once by --device, before any is built
 
 
+#: torch's own thread default here (every core it may use): Stable-Baselines3's, and SBX's
+#: torch side; set before each contender's round, as each library runs at its own default
+TORCH_DEFAULT_THREADS = torch.get_num_threads()
+
+
 class WalkersLoop:
     """The trainer's single-run step (:func:`walkers.training.loops.online_step`: act, step,
     observe, update) around one walkers agent, without the run's books."""
+
+    torch_threads = 1  # walkers.train's default (torch_threads: 1)
 
     def __init__(self, agent_cls, **kwargs):
         self.env = make_env(ENV_CFG)
@@ -79,6 +95,8 @@ class WalkersLoop:
 class PopulationLoop:
     """The trainer's population step (``population=K``: :class:`walkers.training.loops.Lockstep`,
     K envs as one vector env, one batched update for all members), without the runs' books."""
+
+    torch_threads = 1
 
     def __init__(self, k: int, agent_cls=TD3, **kwargs):
         envs = make_vector_env(ENV_CFG, k, step_info=False)
@@ -97,6 +115,8 @@ class PopulationLoop:
 class ParallelLoops:
     """``n`` processes with one torch thread each, each running its own loop (a TD3 seed, or a
     population of ``k``): what a multirun with ``hydra/launcher=joblib`` does with the cores."""
+
+    torch_threads = 1  # the driver's own: its workers set theirs
 
     def __init__(self, n: int, k: int = 1, **kwargs):
         ctx = mp.get_context("spawn")
@@ -126,12 +146,13 @@ def _loop_worker(pipe, k: int, kwargs: dict) -> None:
 
 
 class SB3Loop:
-    """Stable-Baselines3's own ``learn`` loop, continued in chunks."""
+    """Stable-Baselines3's own ``learn`` loop, continued in chunks (``library="sbx"``: SBX's,
+    the same API on JAX)."""
 
-    def __init__(self, algo_name: str):
-        import stable_baselines3 as sb3
+    torch_threads = None  # SB3's default: torch's own (every core it may use)
 
-        cls = getattr(sb3, algo_name)
+    def __init__(self, algo_name: str, library: str = "stable_baselines3"):
+        cls = getattr(importlib.import_module(library), algo_name)
         self.model = cls(
             "MlpPolicy",
             gym.make(ENV_ID),
@@ -162,14 +183,14 @@ def walkers_crossq(width: int) -> WalkersLoop:
 
 
 class SB3CrossQLoop(SB3Loop):
-    """sb3-contrib's CrossQ at the same settings (its defaults but the critics' width)."""
+    """sb3-contrib's CrossQ at the same settings (its defaults but the critics' width;
+    ``library="sbx"``: SBX's)."""
 
     round_steps = CROSSQ_ROUND
 
-    def __init__(self, width: int):
-        from sb3_contrib import CrossQ as ContribCrossQ
-
-        self.model = ContribCrossQ(
+    def __init__(self, width: int, library: str = "sb3_contrib"):
+        cls = importlib.import_module(library).CrossQ
+        self.model = cls(
             "MlpPolicy",
             gym.make(ENV_ID),
             learning_starts=WARMUP,
@@ -193,6 +214,7 @@ class VectorPPOLoop:
     reset in the step)."""
 
     round_steps = PPO_ROLLOUT
+    torch_threads = 1
 
     def __init__(self, num_envs: int):
         self.envs = make_vector_env(ENV_CFG, num_envs)
@@ -272,13 +294,14 @@ def contenders(only: str | None = None, population: tuple[int, ...] = (2, 4)) ->
             if k > 1
         },
     }
-    if DEVICE == "cpu":  # the same cores as processes: one seed (or K=2) per core, 1 thread each
-        loops |= {
-            "2 procs x TD3": lambda: ParallelLoops(2, hidden_sizes=[HIDDEN, HIDDEN], **common),
-            "2 procs x TD3 K=2": lambda: ParallelLoops(
-                2, k=2, hidden_sizes=[HIDDEN, HIDDEN], **common
-            ),
-        }
+    if DEVICE == "cpu":
+        if len(os.sched_getaffinity(0)) > 1:  # the cores as processes, a seed (or K=2) each
+            loops |= {
+                "2 procs x TD3": lambda: ParallelLoops(2, hidden_sizes=[HIDDEN, HIDDEN], **common),
+                "2 procs x TD3 K=2": lambda: ParallelLoops(
+                    2, k=2, hidden_sizes=[HIDDEN, HIDDEN], **common
+                ),
+            }
     else:  # on a GPU the paper's CrossQ width, K seeds at a time; whole updates captured
         loops |= {f"walkers CrossQ 2048 K={k}": partial(crossq_population, k) for k in population}
         captured = {**common, "capture": True, "hidden_sizes": [HIDDEN, HIDDEN]}
@@ -305,6 +328,17 @@ def contenders(only: str | None = None, population: tuple[int, ...] = (2, 4)) ->
         loops["SB3 PPO"] = SB3PPOLoop
     except ImportError:
         print("stable-baselines3 not installed: SB3 rows skipped (pip install -e '.[sb3]')")
+    try:
+        import sbx  # noqa: F401
+
+        loops |= {
+            "SBX TD3": partial(SB3Loop, "TD3", "sbx"),
+            "SBX SAC": partial(SB3Loop, "SAC", "sbx"),
+            "SBX CrossQ 2048": partial(SB3CrossQLoop, 2048, "sbx"),
+            "SBX CrossQ 256": partial(SB3CrossQLoop, 256, "sbx"),
+        }
+    except ImportError:
+        print("sbx-rl not installed: SBX rows skipped (pip install -e '.[bench]')")
     wanted = None if only is None else only.split(",")
     return {
         name: make()
@@ -355,13 +389,22 @@ def main():
         loop.run(WARMUP + 100)  # past the warm-up (and any compile): every timed step learns
 
     def steps_per_second(loop) -> float:  # env steps: a population steps K envs per loop step
+        torch.set_num_threads(loop.torch_threads or TORCH_DEFAULT_THREADS)
         steps = getattr(loop, "round_steps", args.steps)
         start = time.perf_counter()
         loop.run(steps)
         return steps * getattr(loop, "env_steps_per_step", 1) / (time.perf_counter() - start)
 
     sps = alternate(loops, steps_per_second, args.reps)
-    where = f"{torch.get_num_threads()} threads" if DEVICE == "cpu" else f"on {DEVICE}"
+    cores = sorted(os.sched_getaffinity(0))
+    where = (
+        f"on {DEVICE}"
+        if DEVICE != "cpu"
+        else f"pinned to core {cores[0]}"
+        if len(cores) == 1
+        else f"{len(cores)} cores, each library at its default threads (walkers 1, torch "
+        f"{TORCH_DEFAULT_THREADS}, JAX its own)"
+    )
     on_policy = {name: sps.pop(name) for name in PPO_ROWS if name in sps}
     crossq = {name: sps.pop(name) for name in list(sps) if "CrossQ" in name}
     if crossq:
@@ -389,6 +432,7 @@ def main():
     td3 = loops["walkers TD3"].agent
     spaces = env_spaces(loops["walkers TD3"].env)
     obs_dim, act_dim = spaces["obs_dim"], len(spaces["action_low"])
+    torch.set_num_threads(1)
     for _ in range(10):
         td3.update()
     start = time.perf_counter()

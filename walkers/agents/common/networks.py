@@ -18,6 +18,10 @@ from torch import nn
 from torch.nn import functional as F
 
 
+#: every member of an ensemble (the default of ``members``)
+ALL = slice(None)
+
+
 def mlp(in_dim: int, out_dim: int, hidden_sizes: Sequence[int]) -> nn.Sequential:
     """Linear-ReLU stack with a linear output layer."""
     layers: list[nn.Module] = []
@@ -42,8 +46,11 @@ class EnsembleLinear(nn.Module):
         self.weight = nn.Parameter(torch.empty(n, in_dim, out_dim).uniform_(-bound, bound))
         self.bias = nn.Parameter(torch.empty(n, 1, out_dim).uniform_(-bound, bound))
 
-    def forward(self, x: torch.Tensor, members: slice = slice(None)) -> torch.Tensor:
-        weight, bias = self.weight[members], self.bias[members]
+    def forward(self, x: torch.Tensor, members: slice = ALL) -> torch.Tensor:
+        # all members: the parameters themselves (an index would add a view and its backward)
+        weight, bias = (self.weight, self.bias) if members == ALL else (
+            self.weight[members], self.bias[members]
+        )
         if x.dim() == 2:
             x = x.expand(weight.shape[0], *x.shape)
         return torch.baddbmm(bias, x, weight)
@@ -72,7 +79,7 @@ class EnsembleActor(nn.Module):
     def forward(self, obs: torch.Tensor, members: slice = slice(None)) -> torch.Tensor:
         x = obs
         for layer in self.layers[:-1]:
-            x = F.relu(layer(x, members))
+            x = layer(x, members).relu_()  # in place: the matmul's fresh output
         return torch.tanh(self.layers[-1](x, members)) * self.action_scale + self.action_bias
 
 
@@ -108,7 +115,7 @@ class EnsembleGaussianActor(EnsembleActor):
         """mu(s) and log sigma(s) (clamped), each ``(n, batch, act)``."""
         x = obs
         for layer in self.layers[:-1]:
-            x = F.relu(layer(x, members))
+            x = layer(x, members).relu_()
         mean, log_std = self.layers[-1](x, members).chunk(2, dim=-1)
         return mean, log_std.clamp(self.LOG_STD_MIN, self.LOG_STD_MAX)
 
@@ -180,7 +187,7 @@ class MLPCriticEnsemble(nn.Module):
     def forward(self, obs, action, members: slice = slice(None)) -> torch.Tensor:
         x = torch.cat([obs, action], dim=-1)
         for layer in self.hidden:
-            x = F.relu(layer(x, members))
+            x = layer(x, members).relu_()
         return self.out(x, members).squeeze(-1)
 
 

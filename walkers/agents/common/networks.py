@@ -17,7 +17,6 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-
 #: every member of an ensemble (the default of ``members``)
 ALL = slice(None)
 
@@ -48,8 +47,10 @@ class EnsembleLinear(nn.Module):
 
     def forward(self, x: torch.Tensor, members: slice = ALL) -> torch.Tensor:
         # all members: the parameters themselves (an index would add a view and its backward)
-        weight, bias = (self.weight, self.bias) if members == ALL else (
-            self.weight[members], self.bias[members]
+        weight, bias = (
+            (self.weight, self.bias)
+            if members == ALL
+            else (self.weight[members], self.bias[members])
         )
         if x.dim() == 2:
             x = x.expand(weight.shape[0], *x.shape)

@@ -189,7 +189,11 @@ class LocalRay:
             # working directory, so a job's relative paths (work_dir's default `.walkers`)
             # land there, not in the folder pytest was started from
             done = subprocess.run(
-                node, env=self.env, cwd=self.temp_dir, capture_output=True, text=True,
+                node,
+                env=self.env,
+                cwd=self.temp_dir,
+                capture_output=True,
+                text=True,
                 timeout=180,
             )
             if done.returncode != 0:

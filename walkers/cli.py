@@ -7,6 +7,7 @@ and turns those errors into the project's form: ``error: <key>=<value> ...`` on 
 
 from __future__ import annotations
 
+import os
 import sys
 
 from hydra import compose, initialize_config_dir
@@ -216,3 +217,15 @@ def group_by_as_list(args: list[str]) -> list[str]:
         else arg
         for arg in args
     ]
+
+
+def jobs_at_once(launcher) -> int | None:
+    """How many jobs Hydra's ``launcher`` config runs at once: the basic launcher one, joblib
+    its ``n_jobs`` (-1: every core); None where the launcher does not say (a Ray cluster's
+    size is the cluster's)."""
+    if "BasicLauncher" in launcher.get("_target_", ""):
+        return 1
+    n_jobs = launcher.get("n_jobs")
+    if n_jobs is None:
+        return None
+    return (os.cpu_count() or 1) if n_jobs < 0 else n_jobs

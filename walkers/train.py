@@ -23,7 +23,7 @@ from hydra.types import RunMode
 from omegaconf import DictConfig
 
 from walkers import CONF_DIR
-from walkers.cli import exit_on_bad_overrides, renamed_overrides
+from walkers.cli import exit_on_bad_overrides, jobs_at_once, renamed_overrides
 from walkers.errors import CheckpointError, ConfigError
 from walkers.interrupts import RunsStopped, stop_cleanly_on_signals
 from walkers.tracking.names import MULTIRUN_JOB_TAG
@@ -81,9 +81,8 @@ def forget_output_dir() -> None:
 
 
 def parallel_jobs() -> int:
-    """How many jobs Hydra's launcher runs at once (``n_jobs`` of e.g. the joblib launcher)."""
-    n_jobs = HydraConfig.get().launcher.get("n_jobs") or 1
-    return (os.cpu_count() or 1) if n_jobs < 0 else n_jobs
+    """How many jobs Hydra's launcher runs at once on this machine (a cluster's: one here)."""
+    return jobs_at_once(HydraConfig.get().launcher) or 1
 
 
 class JobFailed(RuntimeError):

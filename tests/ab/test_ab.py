@@ -22,6 +22,7 @@ from tests.study_kit import (
     study_run,
 )
 from walkers import CONF_DIR
+from walkers.ab import ledger
 from walkers.ab.spec import StudySpec
 from walkers.errors import ConfigError
 from walkers.plan import make_plan
@@ -42,6 +43,13 @@ def test_an_obvious_difference_stops_at_the_minimum_seeds_and_a_rerun_runs_nothi
     assert parent.data.tags["answer.short_vs_long_on_pendulum"] == "A better"
     assert "short is better than long on pendulum (5 seeds per arm" in result.stdout
     assert "?workflowType=machine_learning" in result.stdout  # the link opens the runs view
+    # before its first round a study says what the round will cost: from the committed results'
+    # runs of its algorithms where its arms have none of their own yet
+    said = result.stdout + result.stderr
+    cost = re.search(
+        r"study 't', look 1: (about ([0-9.e-]+) CPU-hours|its CPU-hours are not)", said
+    )
+    assert cost, said[-3000:]
     # by default a round's jobs run side by side, one a core, one torch thread each
     assert {r.data.params["torch_threads"] for r in runs} == {"1"}
     assert len({r.data.tags["walkers.multirun_job"] for r in runs}) == 10
@@ -57,6 +65,19 @@ def test_an_obvious_difference_stops_at_the_minimum_seeds_and_a_rerun_runs_nothi
         assert parent.data.metrics[f"ab/cpu_hours.{arm}"] == pytest.approx(spent) and spent > 0
     spent_line = r"CPU-hours of the finished runs: (short|long) [0-9.e-]+, (long|short) [0-9.e-]+\n"
     assert re.search(spent_line, result.stdout)
+    # what an env step of each arm costs, for a next round's estimate: its runs' own mean
+    declared = OmegaConf.to_container(OmegaConf.load(CONF_DIR / "ab" / "tiny.yaml").hydra.sweeper)
+    spec = StudySpec.parse(
+        **declared | {"name": "t", "arms": {"short": "", "long": ""}, "envs": ["pendulum"]}
+    )
+    rates = ledger.hours_per_step(runs, spec)
+    for arm in ("short", "long"):
+        per_step = [
+            r.data.metrics["final/cpu_hours"] / 400
+            for r in runs
+            if f"/{arm}/" in r.data.tags["walkers.job_key"]
+        ]
+        assert rates[(arm, "pendulum")] == pytest.approx(sum(per_step) / len(per_step))
     # it ends with its report and its bundle, and says where they are
     assert "report: reports/ab_tiny/Pendulum-v1/report.md" in result.stdout
     assert "bundle: reports/ab_tiny/bundle (11 runs" in result.stdout
@@ -299,3 +320,22 @@ def test_a_study_rerun_with_another_design_is_refused_and_its_normalization_is_p
     assert ledger.open_study_run(client, "designs", renamed, store["path"]).run_id == (
         older.info.run_id
     )
+
+
+def test_a_rounds_cost_puts_each_launch_on_the_job_slot_that_frees_first():
+    """Hand-worked: what a study says a round will cost, from rates of 1 and 2 CPU-hours a step
+    and launches of 3, 1, 1 and 1 steps."""
+    launches = [("a", "e", [0]), ("b", "e", [0]), ("b", "e", [1]), ("b", "e", [2])]
+    rates, left = {("a", "e"): 1.0, ("b", "e"): 2.0}, [3, 1, 1, 1]
+    assert ledger.expected_cost(launches, left, rates, parallel=2) == (  # 3 + 2 + 2 + 2 = 9;
+        "about 9 CPU-hours at the CPU time its arms' runs measured; about 5 h of wall time, "
+        "2 jobs at a time"  # the slots: a's 3 h, then b's third 2 h | b's first two, 2 + 2 h
+    )
+    on_one = ledger.expected_cost(launches, left, rates, parallel=1, from_results={("a", "e")})
+    assert on_one.endswith(
+        "(a on e: the committed results' runs of its algorithm); about 9 h of wall time, one job "
+        "at a time"
+    )
+    assert ledger.expected_cost(launches, left, rates, parallel=None).endswith("measured")
+    unknown = ledger.expected_cost(launches, left, {("a", "e"): 1.0}, parallel=2)
+    assert unknown.startswith("its CPU-hours are not known yet: no run of b on e has measured")

@@ -71,6 +71,8 @@ def test_a_rerun_after_kill_9_of_the_driver_finishes_every_seed_once(store, laun
 
     result = run_cli(args, cwd=store["path"])
     assert result.returncode == 0, result.stderr[-3000:]
+    # the round's cost said before it starts, the killed jobs' remaining steps included
+    assert "study 't', look 1: about " in result.stdout + result.stderr
     # the most work left goes first: the jobs partly done are launched after every fresh one
     launched = re.findall(r"#\d+ : .*job_key=(\S+)", result.stdout + result.stderr)
     assert partly_done and set(launched[-len(partly_done) :]) == partly_done, launched

@@ -16,7 +16,7 @@ import tempfile
 from collections.abc import Mapping
 from pathlib import Path
 
-from walkers import tracking
+from walkers import PROJECT_ROOT, tracking
 from walkers.ab.rounds import Standing
 from walkers.ab.spec import Scores, StudySpec
 from walkers.analysis import formatting
@@ -24,6 +24,7 @@ from walkers.analysis.arms import arm_config, run_params
 from walkers.analysis.sequential import Design
 from walkers.errors import ConfigError
 from walkers.tracking import differing_keys
+from walkers.tracking.bundle_format import BundleRuns
 from walkers.training.provenance import DIVERGED_TAG
 
 log = logging.getLogger("walkers")
@@ -145,6 +146,87 @@ def cpu_hours_line(hours: dict[str, tuple[float, int, int]]) -> str:
     """``CPU-hours of the finished runs: td3 12.31, reinforce 1.20 (4 of 5 runs counted)``."""
     parts = [f"{arm} {formatting.cpu_hours(*counts)}" for arm, counts in hours.items()]
     return "CPU-hours of the finished runs: " + (", ".join(parts) if parts else "none yet")
+
+
+def hours_per_step(runs: list, spec: StudySpec) -> dict[tuple[str, str], float]:
+    """(arm, env) -> CPU-hours an env step of its jobs costs, as its runs measured it: the mean
+    over its FINISHED runs that counted CPU time, else its unfinished run furthest along (past
+    a warm-up, whose random actions cost less than learning). Absent: nothing measured yet."""
+    finished: dict[tuple[str, str], list[float]] = {}
+    furthest: dict[tuple[str, str], tuple[int, float]] = {}
+    for run in runs:
+        place = spec.parse_job_key(run.data.tags.get(tracking.JOB_KEY_TAG, ""))
+        if place is None:
+            continue
+        arm_env = place[:2]
+        if run.info.status == tracking.FINISHED:
+            hours = run.data.metrics.get("final/cpu_hours", math.nan)
+            steps = float(tracking.total_steps_of(run) or "nan")
+            if math.isfinite(hours) and steps > 0:
+                finished.setdefault(arm_env, []).append(hours / steps)
+            continue
+        hours = run.data.metrics.get("perf/cpu_hours", math.nan)
+        steps = int(run.data.tags.get(tracking.LOGGED_THROUGH_TAG, 0))
+        if math.isfinite(hours) and steps > furthest.get(arm_env, (0, 0.0))[0]:
+            furthest[arm_env] = (steps, hours / steps)
+    rates = {key: rate for key, (_, rate) in furthest.items()}
+    return rates | {key: math.fsum(r) / len(r) for key, r in finished.items()}
+
+
+def hours_per_step_in_results(algo: str, env_id: str) -> float | None:
+    """CPU-hours an env step of ``algo`` on ``env_id`` cost in the committed results bundles
+    (``results/*/bundle``: their FINISHED runs that counted CPU time), for a study whose arm
+    has no run of its own yet; None where none has one."""
+    rates = []
+    for path in sorted((PROJECT_ROOT / "results").glob("*/bundle")):
+        for run in BundleRuns(path).runs:
+            hours = run.data.metrics.get("final/cpu_hours", math.nan)
+            steps = float(tracking.total_steps_of(run) or "nan")
+            tags = run.data.tags
+            if (
+                (tags.get("algo"), tags.get("env")) == (algo, env_id)
+                and run.info.status == tracking.FINISHED
+                and math.isfinite(hours)
+                and steps > 0
+            ):
+                rates.append(hours / steps)
+    return math.fsum(rates) / len(rates) if rates else None
+
+
+def expected_cost(
+    launches: list[tuple[str, str, list[int]]],
+    steps_left: list[int],
+    rates: Mapping[tuple[str, str], float],
+    parallel: int | None,
+    from_results: set[tuple[str, str]] | frozenset = frozenset(),
+) -> str:
+    """What a round will cost, said before it starts: its CPU-hours at the rates its arms' runs
+    measured (:func:`hours_per_step`; ``from_results``: arms with no run of their own, rated by
+    :func:`hours_per_step_in_results`), and its wall time with ``parallel`` jobs at a time,
+    the launches taken in order by whichever job slot frees first (one torch thread a job, so
+    a job's wall time is about its CPU time on a machine it has to itself)."""
+    unknown = sorted({f"{arm} on {env}" for arm, env, _ in launches if (arm, env) not in rates})
+    if unknown:
+        return (
+            f"its CPU-hours are not known yet: no run of {', '.join(unknown)} has measured them "
+            "(the next round says)"
+        )
+    hours = [
+        rates[(arm, env)] * left for (arm, env, _), left in zip(launches, steps_left, strict=True)
+    ]
+    borrowed = sorted({f"{arm} on {env}" for arm, env, _ in launches if (arm, env) in from_results})
+    said = f"about {math.fsum(hours):.3g} CPU-hours at the CPU time its arms' runs measured" + (
+        f" ({', '.join(borrowed)}: the committed results' runs of its algorithm)"
+        if borrowed
+        else ""
+    )
+    if not parallel:
+        return said
+    slots = [0.0] * min(parallel, len(hours))
+    for h in hours:  # each launch to the job slot that frees first
+        slots[slots.index(min(slots))] += h
+    at_once = f"{len(slots)} jobs at a time" if len(slots) > 1 else "one job at a time"
+    return f"{said}; about {max(slots):.3g} h of wall time, {at_once}"
 
 
 def check_arms_unchanged(runs: list, spec: StudySpec, configs: Mapping[tuple[str, str], dict]):

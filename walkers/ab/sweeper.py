@@ -44,7 +44,7 @@ from walkers.ab.results import write_results
 from walkers.ab.rounds import standing
 from walkers.ab.spec import StudySpec
 from walkers.analysis.sequential import A_BETTER, B_BETTER, EQUAL, Design, equal_line
-from walkers.cli import one_line_hydra_error
+from walkers.cli import jobs_at_once, one_line_hydra_error
 from walkers.errors import ConfigError
 from walkers.training.provenance import DIVERGED_TAG, SEED_IN_KEY, shareable
 from walkers.training.validate import validate
@@ -82,7 +82,8 @@ class StudySweeper(Sweeper):
             spec = StudySpec.parse(**self.declared)
             design = spec.checked_design()  # before anything is created: a study that can decide
             base = self._base_overrides(arguments)
-            configs = {
+            self.results_rates: dict[tuple[str, str], float | None] = {}
+            self.configs = configs = {
                 (arm.name, env): self._job_config(base, spec, arm.name, env)
                 for arm in spec.trained_arms
                 for env in spec.envs
@@ -160,7 +161,37 @@ class StudySweeper(Sweeper):
                 len(launches),
                 f" ({len(jobs)} seeds)" if len(launches) < len(jobs) else "",
             )
+            steps_left = [
+                sum(
+                    max(0, int(self.configs[(arm, env)]["total_steps"]) - logged.get(key, 0))
+                    for key in (spec.job_key(arm, env, seed) for seed in seeds)
+                )
+                for arm, env, seeds in launches
+            ]
+            cost = ledger.expected_cost(
+                launches,
+                steps_left,
+                *self._hours_per_step(runs, spec),
+            )
+            log.info("study %r, look %d: %s", spec.name, now.look + 2, cost)
             self._launch(client, experiment, spec, base, launches, study.run_id)
+
+    def _hours_per_step(self, runs: list, spec: StudySpec) -> tuple[dict, int | None, set]:
+        """What an env step of each (arm, env) costs: as its own runs measured it, else as the
+        committed results' runs of its algorithm on its env did (looked up once); the jobs run
+        at once; the (arm, env)s whose rate is the results'. :func:`ledger.expected_cost`'s
+        arguments."""
+        rates = ledger.hours_per_step(runs, spec)
+        for (arm, env), config in self.configs.items():
+            if (arm, env) not in rates and (arm, env) not in self.results_rates:
+                algo, env_id = config.get("algo.name"), config.get("env.id")
+                self.results_rates[(arm, env)] = ledger.hours_per_step_in_results(algo, env_id)
+        found = {
+            key: rate
+            for key, rate in self.results_rates.items()
+            if rate is not None and key not in rates
+        }
+        return found | rates, jobs_at_once(self.config.hydra.launcher), set(found)
 
     def _launches(self, spec, jobs, started: set) -> list[tuple[str, str, list[int]]]:
         """The round's jobs as launches ``(arm, env, seeds)``: where an (arm, env) runs its seeds

@@ -14,11 +14,13 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from walkers import CONF_DIR, tracking
+from walkers import CONF_DIR
 from walkers.analysis.references import recorded_fingerprint
 from walkers.cli import exit_on_bad_overrides, or_exit
 from walkers.errors import ConfigError
+from walkers.secrets import redacted_uri
 from walkers.tracking import bundles
+from walkers.tracking.client import connect
 
 STATUSES = ("FINISHED", "KILLED", "FAILED", "RUNNING")
 
@@ -32,12 +34,12 @@ def export(cfg: DictConfig) -> bundles.Exported:
     where = OmegaConf.to_container(cfg.where) if cfg.where else {}
     if not isinstance(where, dict):
         raise ConfigError(f"where={where!r} is not allowed: a mapping of tags, e.g. {{algo: td3}}")
-    client = tracking.connect(cfg.tracking.uri)
+    client = connect(cfg.tracking.uri)
     experiment = client.get_experiment_by_name(cfg.tracking.experiment)
     if experiment is None:
         raise ConfigError(
             f"tracking.experiment={cfg.tracking.experiment!r} is not in the store "
-            f"{tracking.redacted_uri(cfg.tracking.uri)}: nothing exported"
+            f"{redacted_uri(cfg.tracking.uri)}: nothing exported"
         )
     study = None if cfg.study is None else str(cfg.study)
     runs = bundles.select_runs(client, experiment.experiment_id, study, where, statuses)

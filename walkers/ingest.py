@@ -15,13 +15,14 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig
 
-from walkers import CONF_DIR, tracking
+from walkers import CONF_DIR
 from walkers.cli import exit_on_bad_overrides, or_exit
 from walkers.tracking import bundles
+from walkers.tracking.client import connect, ui_url
 
 
 def ingest(cfg: DictConfig) -> bundles.Imported:
-    client = tracking.connect(cfg.tracking.uri)
+    client = connect(cfg.tracking.uri)
     return bundles.import_bundle(client, Path(cfg.bundle), cfg.into)
 
 
@@ -31,7 +32,7 @@ def main(cfg: DictConfig) -> None:
     replacing = f", {done.updated} of them later versions of earlier copies" * bool(done.updated)
     print(
         f"imported {len(done.added)} runs from {cfg.bundle}{replacing} ({done.present} already "
-        f"there); open them: `make ui`, then {tracking.ui_url(done.experiment_id)}"
+        f"there); open them: `make ui`, then {ui_url(done.experiment_id)}"
     )
 
 

@@ -2,7 +2,7 @@
 (:func:`run_summary`), which of them an Optuna sweep may optimize, and which way is better.
 
 A sweep's direction follows its ``optimized_metric`` through this one table
-(:mod:`walkers.tuning.sweeper`), so no study can reward slowness by maximizing
+(:mod:`walkers.tuning.optuna_sweeper`), so no study can reward slowness by maximizing
 ``final/steps_to_threshold``.
 """
 

@@ -3,7 +3,8 @@ Optuna sweeper of ``sweeps/`` (``hydra/sweeper=walkers``) and the plain multirun
 
 Hydra imports every registered plugin (pyproject's ``hydra.plugins`` entry points) whenever it
 composes a config: for every command, including one it refuses in one line because of a typo.
-The sweepers themselves (:mod:`walkers.ab.sweeper`, :mod:`walkers.tuning.sweeper`) import torch,
+The sweepers themselves (:mod:`walkers.ab.study_sweeper`, :mod:`walkers.tuning.optuna_sweeper`)
+import torch,
 MLflow, Optuna and SciPy, seconds of work on a loaded core. The classes here import nothing of
 that: each builds its sweeper when a multirun instantiates it, and hands it every call, with a
 config loader whose compositions a stop signal waits for
@@ -37,20 +38,20 @@ class _Deferred(Sweeper):
 
 
 class ABStudySweeper(_Deferred):
-    """An A/B study in rounds: :class:`walkers.ab.sweeper.StudySweeper`."""
+    """An A/B study in rounds: :class:`walkers.ab.study_sweeper.StudySweeper`."""
 
     def __init__(self, **declared: Any) -> None:
-        from walkers.ab.sweeper import StudySweeper
+        from walkers.ab.study_sweeper import StudySweeper
 
         super().__init__(StudySweeper(**declared))
 
 
 class PruningOptunaSweeper(_Deferred):
     """An Optuna study with pruning, resumes and MLflow parent runs:
-    :class:`walkers.tuning.sweeper.OptunaStudySweeper`."""
+    :class:`walkers.tuning.optuna_sweeper.OptunaStudySweeper`."""
 
     def __init__(self, **settings: Any) -> None:
-        from walkers.tuning.sweeper import OptunaStudySweeper
+        from walkers.tuning.optuna_sweeper import OptunaStudySweeper
 
         super().__init__(OptunaStudySweeper(**settings))
 
@@ -81,8 +82,8 @@ class PlainSweeper(_Deferred):
             # together (joblib) into a sqlite store nobody had opened each ran MLflow's
             # migrations, and all but one failed (3 of 4 on 2 cores). The study and Optuna
             # sweepers open their store first too. An unusable store is one line here.
-            from walkers import tracking
             from walkers.cli import or_exit
+            from walkers.tracking.client import connect
 
-            or_exit(tracking.connect, self.store)
+            or_exit(connect, self.store)
         return super().sweep(arguments)

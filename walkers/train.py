@@ -5,7 +5,7 @@
     python -m walkers.train 'resume=[<id>,<id>]'      # a population's members, together again
     python -m walkers.train --help | --cfg job
 
-The session itself is :func:`walkers.training.session.train`; this returns the value of
+The session itself is :func:`walkers.training.session.run_training`; this returns the value of
 ``optimized_metric`` (what an Optuna sweep optimizes).
 """
 
@@ -32,13 +32,13 @@ __all__ = ["main", "train"]
 
 
 def train(cfg: DictConfig, overrides: list[str] | tuple = (), tags: dict | None = None) -> float:
-    """The training session (:func:`walkers.training.session.train`), a sweep's trial reporting
-    each evaluation to its Optuna study (pruning included). Imported on first use: torch and
-    MLflow take seconds to import, and a typo on the command line is refused before either is
-    needed."""
-    from walkers.training.session import train as session
+    """The training session (:func:`walkers.training.session.run_training`), a sweep's trial
+    reporting each evaluation to its Optuna study (pruning included). Imported on first use:
+    torch and MLflow take seconds to import, and a typo on the command line is refused before
+    either is needed."""
+    from walkers.training.session import run_training
 
-    return session(cfg, overrides, tags, reporter=trial_reporter)
+    return run_training(cfg, overrides, tags, reporter=trial_reporter)
 
 
 def trial_reporter(cfg: DictConfig):

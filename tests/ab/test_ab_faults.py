@@ -13,7 +13,7 @@ import pytest
 
 from tests.conftest import all_runs, run_cli, spawn_cli
 from tests.study_kit import OBVIOUS, OBVIOUS_TD3, export, ingest, job_runs, study, study_run
-from walkers.tracking import LOGGED_THROUGH_TAG
+from walkers.tracking.names import LOGGED_THROUGH_TAG
 
 pytestmark = pytest.mark.faults  # `make test-faults`, beside `make test` in CI
 

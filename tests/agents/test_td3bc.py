@@ -34,7 +34,7 @@ from walkers.data.datasets import OfflineData
 from walkers.data.episodes import Episode
 from walkers.data.replay import Batch
 from walkers.errors import ConfigError
-from walkers.tracking import total_steps_of
+from walkers.tracking.names import total_steps_of
 from walkers.train import train
 from walkers.training import checkpoints
 from walkers.training.checkpoint_evaluation import evaluate

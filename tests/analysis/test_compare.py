@@ -11,9 +11,9 @@ import pytest
 
 from tests.conftest import TINY, all_runs, compose_cfg, new_store, one_line_error, run_cli
 from walkers.analysis.comparison import compare
+from walkers.analysis.comparison_data import SeedRun
 from walkers.analysis.pairwise import compare_groups
 from walkers.analysis.report import verdict
-from walkers.analysis.results import SeedRun
 from walkers.analysis.selection import resolve_dataset
 from walkers.errors import ConfigError
 

@@ -12,14 +12,14 @@ from mlflow.utils.validation import validate_param_and_metric_name
 from omegaconf import OmegaConf
 
 from tests.conftest import compose_cfg
-from walkers import tracking
 from walkers.analysis import arms
 from walkers.analysis.comparison import mlflow_key
+from walkers.analysis.comparison_data import SeedRun
 from walkers.analysis.pairwise import compare_groups
 from walkers.analysis.report import PUBLISHED_CAVEAT, markdown
-from walkers.analysis.results import SeedRun
 from walkers.analysis.selection import published_figures
 from walkers.cli import group_by_as_list
+from walkers.tracking.client import get_or_create_experiment
 
 TD3 = {
     "algo._target_": "walkers.agents.td3.TD3",
@@ -314,7 +314,7 @@ def test_a_run_from_before_a_key_existed_joins_the_arm_of_that_keys_old_value(st
     """Runs logged before ``impl`` existed were trained by walkers: they are seeds of the
     impl=walkers arm, not an arm "(not set)" of their own, and a study by impl finds them."""
     client = store["client"]
-    experiment = tracking.get_or_create_experiment(client, "later_keys")
+    experiment = get_or_create_experiment(client, "later_keys")
 
     def logged(seed: int, **params: str):
         run = client.create_run(experiment, tags={"algo": "td3"})
@@ -340,7 +340,7 @@ def test_a_run_from_before_a_hyperparameter_was_declared_joins_the_arm_of_its_de
     (algo.capture=(not set))" beside "td3 (algo.capture=auto)"; a run that set another value
     stays apart."""
     client = store["client"]
-    experiment = tracking.get_or_create_experiment(client, "declared_later")
+    experiment = get_or_create_experiment(client, "declared_later")
     base = {"algo._target_": "walkers.agents.td3.TD3", "algo.name": "td3", "algo.lr": "0.001"}
 
     def logged(seed: int, **params: str):
@@ -363,13 +363,13 @@ def test_a_run_from_before_a_hyperparameter_was_declared_joins_the_arm_of_its_de
 
 def test_rendering_a_report_imports_no_mlflow_and_a_comparison_no_torch():
     """The report only renders a comparison: its data model and the names of axes come from
-    modules that import no MLflow, and the tracking face imports its parts on first use. Comparing
+    modules that import no MLflow (walkers.tracking.names), and a run's tracker brings it. Comparing
     runs, and refusing a typo on any command line, import no torch (seconds of a user's wait):
     only a reference arm's fingerprint needs it."""
     code = (
         "import sys, walkers.analysis.report, walkers.tracking.names; "
         "assert 'mlflow' not in sys.modules, 'mlflow imported'; "
-        "from walkers.tracking import KILLED, Tracker; "
+        "from walkers.tracking.tracker import Tracker; "
         "assert 'mlflow' in sys.modules; "
         "import walkers.compare, walkers.cli; "
         "assert 'torch' not in sys.modules, 'torch imported'"

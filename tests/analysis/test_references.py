@@ -12,12 +12,12 @@ import pytest
 import yaml
 
 from tests.conftest import all_runs, compose_cfg, new_store, one_line_error, run_cli
-from walkers import tracking
 from walkers.analysis.comparison import build_comparison
 from walkers.analysis.comparison import compare as compare_in_process
 from walkers.errors import ConfigError
 from walkers.export import export
 from walkers.tracking import bundles
+from walkers.tracking.client import get_or_create_experiment
 from walkers.train import train as train_run
 
 TINY = [
@@ -178,7 +178,7 @@ def test_references_on_an_env_the_store_has_no_runs_of_are_held_to_each_other(st
     the evaluation protocol and the budget: the first's settings hold the second."""
     _, _, bundle = stores
     empty = new_store(tmp_path / "empty")
-    tracking.get_or_create_experiment(empty["client"], "ref")  # its runs, if any, are of other envs
+    get_or_create_experiment(empty["client"], "ref")  # its runs, if any, are of other envs
 
     def more_episodes(record):
         record["params"]["eval_episodes"] = "10"

@@ -12,11 +12,11 @@ from mlflow.tracking import MlflowClient
 
 from tests.conftest import all_runs, compose_cfg, new_store, one_line_error, run_cli
 from tests.study_kit import OBVIOUS, arms, export, ingest, study
-from walkers import tracking
 from walkers.analysis.comparison import compare
 from walkers.errors import ConfigError
 from walkers.export import export as export_runs
 from walkers.tracking import bundles
+from walkers.tracking.client import get_or_create_experiment
 from walkers.tracking.names import LOGGED_THROUGH_TAG
 
 
@@ -263,7 +263,7 @@ def test_a_run_that_conflicts_with_a_finished_one_is_refused_before_anything_is_
     _, bundle, _ = studied
     target = new_store(tmp_path)
     client = MlflowClient(target["uri"])
-    experiment_id = tracking.get_or_create_experiment(client, "ab_tiny")
+    experiment_id = get_or_create_experiment(client, "ab_tiny")
     theirs = client.create_run(experiment_id, tags={"walkers.job_key": "ab/t/short/pendulum/3"})
     client.set_terminated(theirs.info.run_id, "FINISHED")
     with pytest.raises(ConfigError) as refused:  # in-process: the truncated bundle's CLI case
@@ -518,7 +518,7 @@ def test_an_import_killed_midway_is_cleaned_up_by_the_next(studied, tmp_path):
     _, bundle, _ = studied
     target = new_store(tmp_path)
     client = MlflowClient(target["uri"])
-    experiment_id = tracking.get_or_create_experiment(client, "ab_tiny")
+    experiment_id = get_or_create_experiment(client, "ab_tiny")
     half = client.create_run(experiment_id, tags={bundles.IMPORTING_TAG: "true"})
     client.log_param(half.info.run_id, "algo.lr", "0.001")
     done = ingest(target, bundle)

@@ -13,7 +13,8 @@ import pytest
 import sqlalchemy
 from mlflow.tracking import MlflowClient
 
-from walkers import interrupts, tracking
+from walkers import interrupts
+from walkers.tracking.client import connect
 from walkers.tracking.tracker import Tracker
 
 
@@ -85,7 +86,7 @@ def test_shielded_blocks_nest_and_raise_once_at_the_outermost(stop_handler):
 def test_a_signal_inside_a_read_is_raised_after_it_and_leaves_the_store_unlocked(
     store, stop_handler
 ):
-    client = tracking.connect(store["uri"])
+    client = connect(store["uri"])
     engine = client._tracking_client.store.engine
     signalled = []
 

@@ -8,7 +8,7 @@ that picks up where the last one stopped.
   checked in one line; its questions, design and job keys;
 - :mod:`walkers.ab.ledger`: the study's MLflow run and the scores of its finished jobs;
 - :mod:`walkers.ab.rounds`: from the scores, each question's answer and the seeds still needed;
-- :mod:`walkers.ab.sweeper`: the Hydra sweeper that launches the rounds over any launcher.
+- :mod:`walkers.ab.study_sweeper`: the Hydra sweeper that launches the rounds over any launcher.
 
 The test itself is :mod:`walkers.analysis.sequential`.
 """

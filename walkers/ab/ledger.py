@@ -16,27 +16,38 @@ import tempfile
 from collections.abc import Mapping
 from pathlib import Path
 
-from walkers import PROJECT_ROOT, tracking
+from walkers import PROJECT_ROOT
 from walkers.ab.rounds import Standing
 from walkers.ab.spec import Scores, StudySpec
 from walkers.analysis import formatting
 from walkers.analysis.arms import arm_config, run_params
 from walkers.analysis.sequential import Design
 from walkers.errors import ConfigError
-from walkers.tracking import differing_keys
 from walkers.tracking.bundle_format import BundleRuns
+from walkers.tracking.client import get_or_create_experiment, quoted, search_runs, tags_equal
+from walkers.tracking.names import (
+    FAILED,
+    FINISHED,
+    JOB_KEY_TAG,
+    KIND_TAG,
+    LOGGED_THROUGH_TAG,
+    STUDY_KIND,
+    STUDY_TAG,
+    differing_keys,
+    status_after,
+    total_steps_of,
+)
+from walkers.tracking.tracker import Tracker
 from walkers.training.provenance import DIVERGED_TAG
 
 log = logging.getLogger("walkers")
 
-STUDY_KIND, STUDY_TAG = tracking.STUDY_KIND, tracking.STUDY_TAG
 
-
-def open_study_run(client, experiment: str, spec: StudySpec, spool_dir) -> tracking.Tracker:
+def open_study_run(client, experiment: str, spec: StudySpec, spool_dir) -> Tracker:
     """The study's run, reopened (its design checked) or started."""
-    experiment_id = tracking.get_or_create_experiment(client, experiment)
-    query = tracking.tags_equal({tracking.KIND_TAG: STUDY_KIND, STUDY_TAG: spec.name})
-    earlier = tracking.search_runs(client, experiment_id, query)
+    experiment_id = get_or_create_experiment(client, experiment)
+    query = tags_equal({KIND_TAG: STUDY_KIND, STUDY_TAG: spec.name})
+    earlier = search_runs(client, experiment_id, query)
     design = spec.design_params()
     if earlier:
         stored = earlier[0].data.params
@@ -47,20 +58,20 @@ def open_study_run(client, experiment: str, spec: StudySpec, spool_dir) -> track
                     f"{key}={stored[key]!r}, not {value!r}: a study's test is fixed when it "
                     "starts; restore the study file or give the new design a new name"
                 )
-        tracker = tracking.Tracker.reopen(client, earlier[0].info.run_id, spool_dir)
+        tracker = Tracker.reopen(client, earlier[0].info.run_id, spool_dir)
         log.info("study %r: continuing its MLflow run %s", spec.name, tracker.run_id)
         return tracker
-    tags = {tracking.KIND_TAG: STUDY_KIND, STUDY_TAG: spec.name}
-    tracker = tracking.Tracker.start(client, experiment, f"ab-{spec.name}", tags, spool_dir)
+    tags = {KIND_TAG: STUDY_KIND, STUDY_TAG: spec.name}
+    tracker = Tracker.start(client, experiment, f"ab-{spec.name}", tags, spool_dir)
     try:
         tracker.log_params(design)
     except BaseException as e:
-        tracker.end(tracking.status_after(e))
+        tracker.end(status_after(e))
         raise
     return tracker
 
 
-def log_deciding_looks(tracker: tracking.Tracker, design: Design) -> None:
+def log_deciding_looks(tracker: Tracker, design: Design) -> None:
     """Tags ``ab.deciding_looks`` and ``ab.equal_looks``: the seeds per arm of the looks that
     can answer "better" (and "equal") at all; the others can only say "continue"."""
     tracker.set_tags(
@@ -76,26 +87,24 @@ def job_runs(client, experiment: str, spec: StudySpec) -> list:
     experiment_obj = client.get_experiment_by_name(experiment)
     if experiment_obj is None:
         return []
-    key = tracking.quoted(f"{spec.job_key_prefix}%")
-    query = f"tags.`{tracking.JOB_KEY_TAG}` LIKE {key}"
-    return tracking.search_runs(client, experiment_obj.experiment_id, query)
+    key = quoted(f"{spec.job_key_prefix}%")
+    query = f"tags.`{JOB_KEY_TAG}` LIKE {key}"
+    return search_runs(client, experiment_obj.experiment_id, query)
 
 
 def finished_scores(runs: list, spec: StudySpec) -> Scores:
     """(arm, env) -> {seed: score} of the FINISHED runs (one per job key: never a seed twice)."""
     scores: dict[tuple[str, str], dict[int, float]] = {}
     for run in runs:
-        place = spec.parse_job_key(run.data.tags.get(tracking.JOB_KEY_TAG, ""))
-        if place is None or run.info.status != tracking.FINISHED:
+        place = spec.parse_job_key(run.data.tags.get(JOB_KEY_TAG, ""))
+        if place is None or run.info.status != FINISHED:
             continue
         arm, env, seed = place
         if spec.score not in run.data.metrics:
             continue
         by_seed = scores.setdefault((arm, env), {})
         if seed in by_seed:
-            log.warning(
-                "job %s has two FINISHED runs: counting one", run.data.tags[tracking.JOB_KEY_TAG]
-            )
+            log.warning("job %s has two FINISHED runs: counting one", run.data.tags[JOB_KEY_TAG])
             continue
         by_seed[seed] = run.data.metrics[spec.score]
     return scores
@@ -106,9 +115,9 @@ def diverged(runs: list, keys: set[str]) -> list:
     return [
         run
         for run in runs
-        if run.info.status == tracking.FAILED
+        if run.info.status == FAILED
         and DIVERGED_TAG in run.data.tags
-        and run.data.tags.get(tracking.JOB_KEY_TAG) in keys
+        and run.data.tags.get(JOB_KEY_TAG) in keys
     ]
 
 
@@ -118,10 +127,10 @@ def steps_logged(runs: list) -> dict[str, int]:
     logged: dict[str, int] = {}
     for run in runs:
         key, mark = (
-            run.data.tags.get(tracking.JOB_KEY_TAG),
-            run.data.tags.get(tracking.LOGGED_THROUGH_TAG),
+            run.data.tags.get(JOB_KEY_TAG),
+            run.data.tags.get(LOGGED_THROUGH_TAG),
         )
-        if key and mark is not None and run.info.status != tracking.FINISHED:
+        if key and mark is not None and run.info.status != FINISHED:
             logged[key] = max(logged.get(key, 0), int(mark))
     return logged
 
@@ -131,8 +140,8 @@ def cpu_hours(runs: list, spec: StudySpec) -> dict[str, tuple[float, int, int]]:
     FINISHED): what the study cost so far, over every env and seed."""
     hours: dict[str, tuple[float, int, int]] = {}
     for run in runs:
-        place = spec.parse_job_key(run.data.tags.get(tracking.JOB_KEY_TAG, ""))
-        if place is None or run.info.status != tracking.FINISHED:
+        place = spec.parse_job_key(run.data.tags.get(JOB_KEY_TAG, ""))
+        if place is None or run.info.status != FINISHED:
             continue
         total, counted, finished = hours.get(place[0], (0.0, 0, 0))
         spent = run.data.metrics.get("final/cpu_hours", math.nan)  # nan: not counted throughout
@@ -155,18 +164,18 @@ def hours_per_step(runs: list, spec: StudySpec) -> dict[tuple[str, str], float]:
     finished: dict[tuple[str, str], list[float]] = {}
     furthest: dict[tuple[str, str], tuple[int, float]] = {}
     for run in runs:
-        place = spec.parse_job_key(run.data.tags.get(tracking.JOB_KEY_TAG, ""))
+        place = spec.parse_job_key(run.data.tags.get(JOB_KEY_TAG, ""))
         if place is None:
             continue
         arm_env = place[:2]
-        if run.info.status == tracking.FINISHED:
+        if run.info.status == FINISHED:
             hours = run.data.metrics.get("final/cpu_hours", math.nan)
-            steps = float(tracking.total_steps_of(run) or "nan")
+            steps = float(total_steps_of(run) or "nan")
             if math.isfinite(hours) and steps > 0:
                 finished.setdefault(arm_env, []).append(hours / steps)
             continue
         hours = run.data.metrics.get("perf/cpu_hours", math.nan)
-        steps = int(run.data.tags.get(tracking.LOGGED_THROUGH_TAG, 0))
+        steps = int(run.data.tags.get(LOGGED_THROUGH_TAG, 0))
         if math.isfinite(hours) and steps > furthest.get(arm_env, (0, 0.0))[0]:
             furthest[arm_env] = (steps, hours / steps)
     rates = {key: rate for key, (_, rate) in furthest.items()}
@@ -181,11 +190,11 @@ def hours_per_step_in_results(algo: str, env_id: str) -> float | None:
     for path in sorted((PROJECT_ROOT / "results").glob("*/bundle")):
         for run in BundleRuns(path).runs:
             hours = run.data.metrics.get("final/cpu_hours", math.nan)
-            steps = float(tracking.total_steps_of(run) or "nan")
+            steps = float(total_steps_of(run) or "nan")
             tags = run.data.tags
             if (
                 (tags.get("algo"), tags.get("env")) == (algo, env_id)
-                and run.info.status == tracking.FINISHED
+                and run.info.status == FINISHED
                 and math.isfinite(hours)
                 and steps > 0
             ):
@@ -233,7 +242,7 @@ def check_arms_unchanged(runs: list, spec: StudySpec, configs: Mapping[tuple[str
     """Refuse, in one line, an arm whose configuration is not that of its runs so far (the
     study file edited): a changed arm is a new arm, under a new name."""
     for run in runs:
-        place = spec.parse_job_key(run.data.tags.get(tracking.JOB_KEY_TAG, ""))
+        place = spec.parse_job_key(run.data.tags.get(JOB_KEY_TAG, ""))
         if place is None or (place[0], place[1]) not in configs:
             continue
         if not run.data.params:  # killed between its start and its config's logging: it
@@ -252,7 +261,7 @@ def check_arms_unchanged(runs: list, spec: StudySpec, configs: Mapping[tuple[str
 
 
 def log_standing(
-    tracker: tracking.Tracker,
+    tracker: Tracker,
     standing: Standing,
     seeds_run: int,
     hours: dict[str, tuple[float, int, int]],

@@ -1,7 +1,8 @@
 """The arms of a comparison: one arm is one configuration, run with several seeds.
 
 A training run's MLflow params are its resolved config, flattened
-(:func:`walkers.tracking.flatten`). Two runs belong to the same arm when those params agree on
+(:func:`walkers.tracking.client.flatten`). Two runs belong to the same arm when those params
+agree on
 everything but the seed and the keys in :data:`NOT_THE_EXPERIMENT`, which cannot change what a
 run learns. Runs of different configurations are never pooled: a group (an algorithm, or the
 values of the ``group_by`` keys) that holds several configurations becomes several arms, named
@@ -17,7 +18,7 @@ from dataclasses import dataclass, field
 from walkers.agents.declarations.schemas import declared_since
 from walkers.analysis import formatting
 from walkers.errors import did_you_mean
-from walkers.tracking import ABSENT, BUDGET_TAG, differing_keys
+from walkers.tracking.names import ABSENT, BUDGET_TAG, differing_keys
 
 #: Config keys (MLflow params; a trailing "." is the whole subtree) that do not make an arm:
 #: a run's results are the same for any value of these, so runs differing only here are seeds of

@@ -27,7 +27,6 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
-from walkers import tracking
 from walkers.analysis.arms import (
     Arm,
     build_arms,
@@ -35,6 +34,9 @@ from walkers.analysis.arms import (
     run_params,
     same_series_pairs,
     unknown_key_hint,
+)
+from walkers.analysis.comparison_data import (
+    Comparison,
 )
 from walkers.analysis.pairwise import compare_groups
 from walkers.analysis.references import (
@@ -44,9 +46,6 @@ from walkers.analysis.references import (
     store_settings,
 )
 from walkers.analysis.report import verdict, write_report
-from walkers.analysis.results import (
-    Comparison,
-)
 from walkers.analysis.selection import (
     CURVE_METRIC,
     load_seed_runs,
@@ -54,7 +53,11 @@ from walkers.analysis.selection import (
     select_runs,
 )
 from walkers.errors import ConfigError
-from walkers.tracking import KIND_TAG, bundles
+from walkers.secrets import redacted_uri
+from walkers.tracking import bundles
+from walkers.tracking.client import connect, search_runs
+from walkers.tracking.names import KIND_TAG
+from walkers.tracking.tracker import side_run
 
 log = logging.getLogger("walkers")
 
@@ -104,7 +107,7 @@ def publish(comparison: Comparison, client, cfg: DictConfig, out: Path) -> str |
     files = write_report(comparison, out, source=source_name(cfg))
     if not cfg.log_report:
         return None
-    return _log_report(client or tracking.connect(cfg.tracking.uri), cfg, comparison, files)
+    return _log_report(client or connect(cfg.tracking.uri), cfg, comparison, files)
 
 
 def build_comparison(cfg: DictConfig, beside: dict | None = None):
@@ -189,7 +192,7 @@ def open_runs(cfg: DictConfig) -> tuple:
     if cfg.get("bundle"):
         bundle = bundles.BundleRuns(Path(str(cfg.bundle)))
         return None, bundle, bundle.runs
-    client = tracking.connect(cfg.tracking.uri)
+    client = connect(cfg.tracking.uri)
     experiment = client.get_experiment_by_name(cfg.tracking.experiment)
     if experiment is None:
         names = [e.name for e in client.search_experiments()]
@@ -197,7 +200,7 @@ def open_runs(cfg: DictConfig) -> tuple:
             f"tracking.experiment={cfg.tracking.experiment!r} is not in {cfg.tracking.uri}; "
             f"experiments there: {', '.join(names) or 'none'}"
         )
-    return client, client, tracking.search_runs(client, experiment.experiment_id)
+    return client, client, search_runs(client, experiment.experiment_id)
 
 
 def runs_place(cfg: DictConfig) -> str:
@@ -213,7 +216,7 @@ def source_name(cfg: DictConfig) -> str:
         return str(cfg.source)
     if cfg.get("bundle"):
         return f"bundle {cfg.bundle}"
-    return f"{tracking.redacted_uri(cfg.tracking.uri)}, {runs_place(cfg)}"
+    return f"{redacted_uri(cfg.tracking.uri)}, {runs_place(cfg)}"
 
 
 def _arms_from(reference, arms: list[Arm]) -> dict[str, list[str]]:
@@ -253,7 +256,7 @@ def _log_report(client, cfg: DictConfig, comparison: Comparison, files: list[Pat
     names = [r.algo for r in comparison.algos]
     algorithms = list(dict.fromkeys(r.algorithm for r in comparison.algos))
     study = f"-by-{'+'.join(comparison.group_by)}" if comparison.group_by else ""
-    with tracking.side_run(
+    with side_run(
         client,
         cfg.tracking.experiment,
         run_name=f"report-{'-vs-'.join(algorithms)}{study}-{comparison.env_id}"[:MAX_NAME],

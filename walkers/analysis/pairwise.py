@@ -11,8 +11,8 @@ import numpy as np
 
 from walkers.analysis import stats
 from walkers.analysis.arms import Arm
+from walkers.analysis.comparison_data import AlgoResult, Comparison, PairResult, SeedRun
 from walkers.analysis.power import pair_power
-from walkers.analysis.results import AlgoResult, Comparison, PairResult, SeedRun
 
 
 def compare_groups(

@@ -16,10 +16,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from walkers import tracking
+from walkers.analysis.comparison_data import AlgoResult, Comparison
 from walkers.analysis.power import analyse
-from walkers.analysis.results import AlgoResult, Comparison
 from walkers.errors import ConfigError
+from walkers.tracking.names import total_steps_of
 
 #: Fewer pilot seeds than this in an arm give no usable estimate of its spread.
 MIN_PILOT_SEEDS = 3
@@ -50,7 +50,7 @@ def arm_cost(result: AlgoResult, runs_by_id: dict) -> ArmCost:
     steps, hours, cpus = [], [], []
     for seed_run in result.runs:
         run = runs_by_id[seed_run.run_id]
-        budget = float(tracking.total_steps_of(run) or "nan")
+        budget = float(total_steps_of(run) or "nan")
         sps = run.data.metrics.get("perf/sps", math.nan)
         steps.append(budget)
         hours.append(budget / sps / 3600 if sps and sps > 0 else math.nan)

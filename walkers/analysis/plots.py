@@ -14,7 +14,7 @@ matplotlib.use("Agg")  # files only, never a window
 import matplotlib.pyplot as plt  # noqa: E402
 
 from walkers.analysis import arms, stats  # noqa: E402
-from walkers.analysis.results import AXIS_NAMES, AlgoResult, Comparison  # noqa: E402
+from walkers.analysis.comparison_data import AXIS_NAMES, AlgoResult, Comparison  # noqa: E402
 from walkers.tracking.names import ENV_STEPS  # noqa: E402
 
 

@@ -25,10 +25,10 @@ from pathlib import Path
 
 import yaml
 
-from walkers import tracking
 from walkers.analysis.arms import is_not_the_experiment, run_params
 from walkers.errors import ConfigError
 from walkers.tracking.bundles import FINGERPRINT_TAG, BundleRuns
+from walkers.tracking.names import FINISHED, KIND_TAG, total_steps_of
 from walkers.training.provenance import code_digests
 
 #: The param a reference's runs carry: the bundle's name.
@@ -53,8 +53,7 @@ def _training(runs) -> list:
     return [
         r
         for r in runs
-        if r.info.status == tracking.FINISHED
-        and r.data.tags.get(tracking.KIND_TAG, "train") == "train"
+        if r.info.status == FINISHED and r.data.tags.get(KIND_TAG, "train") == "train"
     ]
 
 
@@ -66,7 +65,7 @@ def store_settings(store_runs: list, env_id: str, budget: int | None):
     if not ours:
         return None, budget
     if budget is None:
-        budget = int(Counter(map(tracking.total_steps_of, ours)).most_common(1)[0][0])
+        budget = int(Counter(map(total_steps_of, ours)).most_common(1)[0][0])
     every = [run_params(r) for r in ours]
     shared = {k: v for k, v in every[0].items() if all(p.get(k) == v for p in every[1:])}
     return shared, budget

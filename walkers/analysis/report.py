@@ -1,7 +1,8 @@
 """The A/B report: a plain-language verdict, tables, and the plots of
 :mod:`walkers.analysis.plots`.
 
-Everything here renders a :class:`walkers.analysis.results.Comparison`; nothing is computed that the
+Everything here renders a :class:`walkers.analysis.comparison_data.Comparison`; nothing is
+computed that the
 comparison does not hold, except the learning-curve bands (a bootstrap over seeds per step).
 A ``group_by`` study also gets ``group_by.png``: the score (IQM, CI) against the keys' values.
 Published reference figures for the env, when it has any, get a table of their own.
@@ -14,15 +15,15 @@ import math
 from pathlib import Path
 
 from walkers.analysis import formatting
-from walkers.analysis.formatting import interval, number
-from walkers.analysis.plots import plot_group_by, plot_learning_curves, plot_scores
-from walkers.analysis.power import MAX_SEEDS, TARGET
-from walkers.analysis.results import (
+from walkers.analysis.comparison_data import (
     AXIS_NAMES,
     PUBLISHED_CAVEAT,
     Comparison,
     PairResult,
 )
+from walkers.analysis.formatting import interval, number
+from walkers.analysis.plots import plot_group_by, plot_learning_curves, plot_scores
+from walkers.analysis.power import MAX_SEEDS, TARGET
 from walkers.tracking.names import ENV_STEPS
 
 QUANTITY_NAMES = {"score": "final return", "auc": "AUC (rate of learning)"}

@@ -10,11 +10,20 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from walkers import tracking
 from walkers.analysis import formatting, stats
-from walkers.analysis.results import AXIS_NAMES, SeedRun
+from walkers.analysis.comparison_data import AXIS_NAMES, SeedRun
 from walkers.errors import ConfigError
-from walkers.tracking import ENV_STEPS, GRADIENT_STEPS, KIND_TAG, ORIGIN_TAG
+from walkers.tracking.client import metric_history
+from walkers.tracking.names import (
+    ENV_STEPS,
+    FINISHED,
+    GRADIENT_STEPS,
+    KIND_TAG,
+    ORIGIN_TAG,
+    PRUNED_TAG,
+    X_AXIS_TAG,
+    total_steps_of,
+)
 from walkers.training.provenance import DATA_DIGEST, DATA_STATS_KEYS, other_data
 
 CURVE_METRIC = "eval/return_mean"
@@ -22,11 +31,11 @@ TARGET_METRIC = re.compile(r"eval/target_(.+)/return_mean")  # a DT's return at 
 
 
 def x_axis(run) -> str:
-    return run.data.tags.get(tracking.X_AXIS_TAG, ENV_STEPS)
+    return run.data.tags.get(X_AXIS_TAG, ENV_STEPS)
 
 
 def _budget(run) -> int | None:
-    value = tracking.total_steps_of(run)
+    value = total_steps_of(run)
     return int(value) if value is not None and value.isdigit() else None
 
 
@@ -64,20 +73,16 @@ def select_runs(
         listed = ", ".join(f"{env}: {n}" for env, n in sorted(other_envs.items(), key=str))
         notes.append(f"{formatting.runs(sum(other_envs.values()))} on other envs ({listed})")
     on_env = [r for r in wanted if r.data.tags.get("env") == env_id]
-    unfinished = [r for r in on_env if r.info.status != tracking.FINISHED]
+    unfinished = [r for r in on_env if r.info.status != FINISHED]
     for r in unfinished:
         notes.append(
             f"run {r.info.run_id} ({r.data.tags.get('algo')}, seed {r.data.tags.get('seed')}) "
             f"is {r.info.status}"
         )
-    pruned = [r for r in on_env if tracking.PRUNED_TAG in r.data.tags]
+    pruned = [r for r in on_env if PRUNED_TAG in r.data.tags]
     if pruned:
         notes.append(f"{formatting.runs(len(pruned))} of sweep trials stopped early by pruning")
-    finished = [
-        r
-        for r in on_env
-        if r.info.status == tracking.FINISHED and tracking.PRUNED_TAG not in r.data.tags
-    ]
+    finished = [r for r in on_env if r.info.status == FINISHED and PRUNED_TAG not in r.data.tags]
     offline = [r for r in finished if x_axis(r) == GRADIENT_STEPS]
     if offline:
         dataset = resolve_dataset(dataset, offline, env_id)
@@ -196,7 +201,7 @@ def load_seed_runs(client, runs: list, threshold: float) -> dict[str, SeedRun]:
     """Eval curves and summaries of ``runs`` by run id (runs without evals are not in it)."""
     loaded: dict[str, SeedRun] = {}
     for run in runs:
-        steps, values = tracking.metric_history(client, run.info.run_id, CURVE_METRIC)
+        steps, values = metric_history(client, run.info.run_id, CURVE_METRIC)
         if not steps:
             continue
         loaded[run.info.run_id] = SeedRun(

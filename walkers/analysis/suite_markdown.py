@@ -5,8 +5,8 @@ from __future__ import annotations
 from omegaconf import DictConfig
 
 from walkers.analysis import formatting, stats
+from walkers.analysis.comparison_data import AXIS_NAMES, AlgoResult
 from walkers.analysis.formatting import header, interval, one_decimal
-from walkers.analysis.results import AXIS_NAMES, AlgoResult
 from walkers.analysis.suite_scores import SuiteStatistics, Task, budget, cpu_hours
 
 

@@ -18,8 +18,8 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 from walkers.analysis.comparison import build_comparison, compare, publish, runs_place
+from walkers.analysis.comparison_data import AXIS_NAMES
 from walkers.analysis.plots import suite_plots
-from walkers.analysis.results import AXIS_NAMES
 from walkers.analysis.suite_markdown import suite_markdown
 from walkers.analysis.suite_scores import (
     Task,

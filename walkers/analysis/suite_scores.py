@@ -13,7 +13,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from walkers import CONF_DIR
 from walkers.analysis import stats
-from walkers.analysis.results import AlgoResult, Comparison
+from walkers.analysis.comparison_data import AlgoResult, Comparison
 from walkers.errors import ConfigError
 from walkers.metrics import normalized_score
 from walkers.tracking.names import GRADIENT_STEPS

@@ -12,7 +12,9 @@ from typing import Any
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
-from walkers import tracking
+from walkers.tracking.client import connect, get_or_create_experiment, quoted
+from walkers.tracking.names import MULTIRUN_JOB_TAG, status_after
+from walkers.tracking.tracker import end_running
 
 log = logging.getLogger("walkers")
 
@@ -37,8 +39,8 @@ class PrepareTrackingStore(Callback):
             return  # walkers' sweepers (a tuning sweep, an A/B study) prepare the store
             # themselves, once their declaration is checked: bad input creates nothing
         try:
-            client = tracking.connect(config.tracking.uri)
-            tracking.get_or_create_experiment(client, config.tracking.experiment)
+            client = connect(config.tracking.uri)
+            get_or_create_experiment(client, config.tracking.experiment)
         except Exception as e:  # each job reports a bad store itself, as a one-line error
             log.warning("could not prepare the MLflow store before the jobs: %s", e)
 
@@ -48,14 +50,14 @@ class PrepareTrackingStore(Callback):
         if error is None or isinstance(error, SystemExit):
             return  # every job returned (each ended its own runs), or bad input started none
         stop_remote_jobs()
-        status = tracking.status_after(error)
+        status = status_after(error)
         try:
-            client = tracking.connect(config.tracking.uri)
-            jobs = tracking.quoted(f"{config.hydra.sweep.dir}#%")  # this multirun's jobs
-            query = f"tags.`{tracking.MULTIRUN_JOB_TAG}` LIKE {jobs}"
+            client = connect(config.tracking.uri)
+            jobs = quoted(f"{config.hydra.sweep.dir}#%")  # this multirun's jobs
+            query = f"tags.`{MULTIRUN_JOB_TAG}` LIKE {jobs}"
             reason = f"its multirun stopped before the job ended: {type(error).__name__}"
             experiment = config.tracking.experiment
-            for run_id in tracking.end_running(client, experiment, query, status, reason):
+            for run_id in end_running(client, experiment, query, status, reason):
                 log.warning("run %s of this multirun was left RUNNING: %s", run_id, status)
         except Exception as e:  # on the way out: say it, never mask why the multirun stopped
             log.error("could not end the runs of this multirun's jobs: %s", e)

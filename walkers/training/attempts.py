@@ -16,9 +16,9 @@ from dataclasses import dataclass
 
 from omegaconf import DictConfig, OmegaConf
 
-from walkers import tracking
 from walkers.errors import ConfigError
-from walkers.tracking import flatten
+from walkers.tracking.client import flatten, search_runs, tags_equal
+from walkers.tracking.names import FINISHED, JOB_KEY_TAG
 from walkers.training.provenance import (
     COMMAND_KEY_TAG,
     DIVERGED_TAG,
@@ -31,8 +31,7 @@ from walkers.training.provenance import (
     other_data,
 )
 from walkers.training.resume import RESUME_OVERRIDABLE
-from walkers.training.run import has_checkpoint, in_training_here, supersede
-from walkers.training.run import last_checkpoint as run_last_checkpoint
+from walkers.training.run import has_checkpoint, in_training_here, last_checkpoint, supersede
 from walkers.training.run_dataset import RunDataset
 
 log = logging.getLogger("walkers")
@@ -119,7 +118,7 @@ def _identity(cfg: DictConfig, key: str) -> tuple[str, list[str]]:
     (one per member of a population, the same for all unless it holds ``{seed}``), or for a
     plain command its :func:`command_key`, the same for every member."""
     if cfg.job_key:
-        return tracking.JOB_KEY_TAG, run_job_keys(cfg)
+        return JOB_KEY_TAG, run_job_keys(cfg)
     return COMMAND_KEY_TAG, [key] * cfg.population
 
 
@@ -131,8 +130,8 @@ def _attempts(client, cfg: DictConfig, key: str) -> list:
     tag, keys = _identity(cfg, key)
     runs = []
     for value in dict.fromkeys(keys):
-        query = tracking.tags_equal({tag: value})
-        runs += tracking.search_runs(client, experiment.experiment_id, query)
+        query = tags_equal({tag: value})
+        runs += search_runs(client, experiment.experiment_id, query)
     return runs
 
 
@@ -142,7 +141,7 @@ def finished_attempts(client, cfg: DictConfig, key: str) -> list | None:
     seed, so a population whose seeds all finished alone has nothing left to train either.
     Said in one line, with what to do instead."""
     tag, keys = _identity(cfg, key)
-    finished = [r for r in _attempts(client, cfg, key) if r.info.status == tracking.FINISHED]
+    finished = [r for r in _attempts(client, cfg, key) if r.info.status == FINISHED]
     shared_key = len(set(keys)) < len(keys)  # members told apart by their tag
     done = []
     for member, value in enumerate(keys):
@@ -273,7 +272,7 @@ def _why_not_continued(
         return "which ended without a checkpoint"
     steps = set()
     if len(runs) > 1:  # members continue together only from one step
-        steps = {run_last_checkpoint(client, cfg.work_dir, run_id).step for run_id in ids}
+        steps = {last_checkpoint(client, cfg.work_dir, run_id).step for run_id in ids}
     if len(steps) > 1:
         return f"whose members' checkpoints are at different steps {sorted(steps)}"
     return None

@@ -19,9 +19,9 @@ from pathlib import Path
 
 from omegaconf import DictConfig
 
-from walkers import tracking
 from walkers.errors import ConfigError
 from walkers.seeding import eval_start_seeds, held_out_start_seeds
+from walkers.tracking.client import connect, download_checkpoint, require_run
 from walkers.training.checkpoints import Checkpoint, agent_from_checkpoint
 from walkers.training.envs import make_env
 from walkers.training.greedy_episodes import record_episodes
@@ -64,7 +64,7 @@ def fetch_checkpoint(cfg: DictConfig, client) -> Path:
             )
         return path
     folder = RunFolder.of(cfg.work_dir, cfg.run_id)
-    return tracking.download_checkpoint(client, cfg.run_id, f"{cfg.checkpoint}.pt", folder.download)
+    return download_checkpoint(client, cfg.run_id, f"{cfg.checkpoint}.pt", folder.download)
 
 
 def evaluate(cfg: DictConfig) -> dict:
@@ -73,8 +73,8 @@ def evaluate(cfg: DictConfig) -> dict:
     _check(cfg)
     client = None
     if cfg.run_id:
-        client = tracking.connect(cfg.tracking.uri, looking_for=f"run_id={cfg.run_id!r}")
-        tracking.require_run(client, cfg.run_id, cfg.tracking.uri)
+        client = connect(cfg.tracking.uri, looking_for=f"run_id={cfg.run_id!r}")
+        require_run(client, cfg.run_id, cfg.tracking.uri)
     checkpoint = Checkpoint.read(fetch_checkpoint(cfg, client))
     env = make_env(checkpoint.config["env"], shaping=False, render_mode=cfg.render)
     try:

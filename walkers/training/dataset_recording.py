@@ -26,11 +26,13 @@ from pathlib import Path
 import numpy as np
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
-from walkers import tracking
 from walkers.agents.base import Agent
 from walkers.data.episodes import Episode
 from walkers.data.replay import first_steps, replay_episodes
 from walkers.errors import CheckpointError, ConfigError
+from walkers.tracking.client import connect, require_run, search_runs
+from walkers.tracking.names import FINISHED, GRADIENT_STEPS, KIND_TAG, X_AXIS_TAG
+from walkers.tracking.tracker import side_run
 from walkers.training.checkpoint_evaluation import fetch_checkpoint
 from walkers.training.checkpoints import Checkpoint, agent_from_checkpoint
 from walkers.training.envs import make_env
@@ -118,7 +120,7 @@ def load_behaviours(cfg: DictConfig, client) -> list[Behaviour]:
             behaviours.append(Behaviour(RANDOM, None, cfg.env))
             continue
         if run_id is not None:
-            tracking.require_run(client, run_id, cfg.tracking.uri)
+            require_run(client, run_id, cfg.tracking.uri)
         name = "last" if cfg.replay else cfg.checkpoint
         source = {"run_id": run_id, "checkpoint": name, "work_dir": cfg.work_dir}
         path = fetch_checkpoint(OmegaConf.create(source), client)
@@ -144,13 +146,13 @@ def load_behaviours(cfg: DictConfig, client) -> list[Behaviour]:
 def latest_run(client, cfg: DictConfig) -> str:
     """The newest FINISHED training run of ``tracking.experiment`` (on ``env`` if one is given)."""
     experiment = client.get_experiment_by_name(cfg.tracking.experiment)
-    runs = [] if experiment is None else tracking.search_runs(client, experiment.experiment_id)
+    runs = [] if experiment is None else search_runs(client, experiment.experiment_id)
     finished = [
         r
         for r in runs
-        if r.info.status == tracking.FINISHED
-        and tracking.KIND_TAG not in r.data.tags
-        and r.data.tags.get(tracking.X_AXIS_TAG) != tracking.GRADIENT_STEPS  # not offline runs
+        if r.info.status == FINISHED
+        and KIND_TAG not in r.data.tags
+        and r.data.tags.get(X_AXIS_TAG) != GRADIENT_STEPS  # not offline runs
         and (cfg.get("env") is None or r.data.tags.get("env") == cfg.env.id)
     ]
     if not finished:
@@ -200,7 +202,7 @@ def collect(cfg: DictConfig) -> dict:
             f"dataset={datasets.dataset_id(cfg.dataset)!r} already exists in {datasets.root()}: "
             "choose another name or version, or pass overwrite=true"
         )
-    client = tracking.connect(cfg.tracking.uri) if (cfg.log_to_mlflow or cfg.run_id) else None
+    client = connect(cfg.tracking.uri) if (cfg.log_to_mlflow or cfg.run_id) else None
     behaviours = load_behaviours(cfg, client)
     env = make_env(behaviours[0].env_cfg, shaping=False)
     rng = np.random.default_rng(cfg.seed)
@@ -293,11 +295,11 @@ def _log_dataset_run(client, cfg: DictConfig, data, stats: dict, sources: list[s
     matplotlib.use("Agg")
     from matplotlib import pyplot as plt
 
-    with tracking.side_run(
+    with side_run(
         client,
         cfg.tracking.experiment,
         run_name=f"dataset-{data.id}",
-        tags={tracking.KIND_TAG: "dataset", "env": data.env_id, "dataset": data.id},
+        tags={KIND_TAG: "dataset", "env": data.env_id, "dataset": data.id},
         spool_dir=Path(cfg.work_dir) / "spool",
     ) as tracker:
         tracker.log_params(

@@ -17,8 +17,9 @@ from importlib import metadata
 
 from omegaconf import DictConfig, OmegaConf
 
-from walkers import PROJECT_ROOT, tracking
-from walkers.secrets import redacted
+from walkers import PROJECT_ROOT
+from walkers.secrets import redacted, redacted_uri
+from walkers.tracking.names import JOB_KEY_TAG, X_AXIS_TAG
 
 #: Tag: the versions of the packages that compute a run (:data:`PACKAGES`).
 PACKAGES_TAG = "walkers.packages"
@@ -64,12 +65,12 @@ def new_run_tags(cfg: DictConfig, x_axis: str, data=None) -> dict[str, str]:
         WORKER_TAG: worker_name(),
         "git_commit": commit,
         "mlflow.source.git.commit": commit,
-        tracking.X_AXIS_TAG: x_axis,
+        X_AXIS_TAG: x_axis,
     }
     if data is not None:
         tags["dataset"] = data.dataset.id
     if cfg.job_key:
-        tags[tracking.JOB_KEY_TAG] = cfg.job_key
+        tags[JOB_KEY_TAG] = cfg.job_key
     return tags
 
 
@@ -147,7 +148,7 @@ def shareable(cfg: DictConfig) -> dict:
         if isinstance(data.get(node), dict) and data[node].get("storage"):
             data[node]["storage"] = redacted(data[node]["storage"])
     if isinstance(data.get("tracking"), dict) and data["tracking"].get("uri"):
-        data["tracking"]["uri"] = tracking.redacted_uri(data["tracking"]["uri"])
+        data["tracking"]["uri"] = redacted_uri(data["tracking"]["uri"])
     return data
 
 

@@ -1,6 +1,7 @@
 """How a named run continues: ``resume=<id>`` (``resume=[<id>,...]`` for a population's runs
 together), with the run's stored config and the overrides allowed on resume (:func:`resumed`),
-from its last checkpoint (the local resume copy or MLflow's, the newer: :func:`last_checkpoint`);
+from its last checkpoint (the local resume copy or MLflow's, the newer:
+:func:`walkers.training.run.last_checkpoint`);
 an offline run goes on learning from the data it started on (:func:`check_same_data`).
 
 The same command run again finds the run to continue in :mod:`walkers.training.attempts`; the
@@ -15,17 +16,16 @@ from collections.abc import Callable
 
 from omegaconf import DictConfig, OmegaConf
 
-from walkers import tracking
 from walkers.agents.declarations.schemas import declared_since
 from walkers.errors import ConfigError
-from walkers.tracking import differing_keys, flatten
+from walkers.tracking.client import flatten, require_run
+from walkers.tracking.names import differing_keys
 from walkers.training.checkpoints import Checkpoint
 from walkers.training.provenance import (
     job_key_of_seed,
     other_data,
 )
-from walkers.training.run import in_training_here
-from walkers.training.run import last_checkpoint as run_last_checkpoint
+from walkers.training.run import in_training_here, last_checkpoint
 from walkers.training.run_dataset import RunDataset
 
 log = logging.getLogger("walkers")
@@ -54,7 +54,8 @@ def load_run(client, cfg: DictConfig, overrides, run_id: str | None = None):
             f"resume={run_id} is not allowed now: a process of this machine is training the run; "
             "wait for it to end, or stop it there"
         )
-    start = last_checkpoint(client, cfg, run_id)
+    require_run(client, run_id, cfg.tracking.uri, key="resume")  # a clear error if not there
+    start = last_checkpoint(client, cfg.work_dir, run_id)
     stored = start.run_config()
     given = {o.split("=", 1)[0].lstrip("+~") for o in overrides}
     for key in RESUME_OVERRIDABLE:
@@ -143,14 +144,6 @@ def check_same_data(client, cfg: DictConfig, data: RunDataset) -> None:
             f"the run learned from ({difference}): a rebuild under its name; restore that "
             "build, or train a new run"
         )
-
-
-def last_checkpoint(client, cfg: DictConfig, run_id: str) -> Checkpoint:
-    """Run ``run_id``'s ``last.pt`` (a clear error if ``tracking.uri`` has no such run):
-    the local resume copy (replay buffer included) where this machine trained the run and
-    MLflow's is not newer, else the one uploaded to MLflow."""
-    tracking.require_run(client, run_id, cfg.tracking.uri, key="resume")
-    return run_last_checkpoint(client, cfg.work_dir, run_id)
 
 
 def resumed(

@@ -4,8 +4,8 @@
 about a run; what a training run says to MLflow goes through it (the session only connects the
 client; ``make lint`` keeps the book and the loops from importing :mod:`walkers.tracking`). It
 opens the run (new, or the resumed one reopened), holds its lock while it trains, logs and
-uploads, and :func:`ending` gives it its final status on every way out; it finds a run's last
-checkpoint; which run continues is :mod:`walkers.training.attempts`' and
+uploads, and :func:`ending_and_saying_how` gives it its final status on every way out; it
+finds a run's last checkpoint; which run continues is :mod:`walkers.training.attempts`' and
 :mod:`walkers.training.resume`'s. :class:`RunFolder` is the one place the local layout is spelled::
 
     <work_dir>/runs/<run id>/
@@ -29,9 +29,20 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
-from walkers import tracking
 from walkers.errors import CheckpointError, ConfigError
 from walkers.interrupts import RunsStopped
+from walkers.tracking.client import download_checkpoint, flatten
+from walkers.tracking.names import (
+    BUDGET_TAG,
+    ENV_STEPS,
+    FAILED,
+    GRADIENT_STEPS,
+    KILLED,
+    PRUNED_TAG,
+    status_after,
+    total_steps_of,
+)
+from walkers.tracking.tracker import Tracker, ending
 from walkers.training.checkpoints import Checkpoint
 from walkers.training.provenance import (
     SUPERSEDED_TAG,
@@ -54,8 +65,8 @@ def _resumed_tags(client, cfg: DictConfig) -> dict[str, str]:
     run = client.get_run(cfg.resume)
     budget = str(cfg.total_steps)
     tags = {}
-    if tracking.total_steps_of(run) != budget:
-        tags[tracking.BUDGET_TAG] = budget
+    if total_steps_of(run) != budget:
+        tags[BUDGET_TAG] = budget
     code = resumed_code_tags(run.data.tags)
     for digests in code.values():
         log.warning(
@@ -78,8 +89,8 @@ class Axis:
 
 
 #: online runs count env steps; offline runs gradient steps
-ENV_STEP_AXIS = Axis(tracking.ENV_STEPS, "perf/sps", "step")
-GRADIENT_STEP_AXIS = Axis(tracking.GRADIENT_STEPS, "perf/gradient_steps_per_s", "grad step")
+ENV_STEP_AXIS = Axis(ENV_STEPS, "perf/sps", "step")
+GRADIENT_STEP_AXIS = Axis(GRADIENT_STEPS, "perf/gradient_steps_per_s", "grad step")
 
 
 @dataclass(frozen=True)
@@ -119,9 +130,10 @@ class RunFolder:
 
 
 class TrainingRun:
-    """One training run: its MLflow run (a :class:`~walkers.tracking.Tracker`) and its folder."""
+    """One training run: its MLflow run (a :class:`~walkers.tracking.tracker.Tracker`) and its
+    folder."""
 
-    def __init__(self, tracker: tracking.Tracker, folder: RunFolder, lock=None):
+    def __init__(self, tracker: Tracker, folder: RunFolder, lock=None):
         self.tracker, self.folder = tracker, folder
         tracker.spool_dir = folder.root  # what MLflow never takes is kept with the run
         self._lock = lock  # the run's lock file, held while this process trains it
@@ -147,13 +159,13 @@ class TrainingRun:
             lock = hold_lock(RunFolder.of(cfg.work_dir, cfg.resume))
             try:
                 tags |= {WORKER_TAG: worker_name()} | _resumed_tags(client, cfg)
-                tracker = tracking.Tracker.reopen(client, cfg.resume, ".", resumed_training=True)
+                tracker = Tracker.reopen(client, cfg.resume, ".", resumed_training=True)
             except BaseException:
                 lock.close()
                 raise
         else:
             tags = new_run_tags(cfg, axis.name, data) | tags
-            tracker = tracking.Tracker.start(
+            tracker = Tracker.start(
                 client, cfg.tracking.experiment, run_name(cfg), tags=tags, spool_dir="."
             )
         run = cls(tracker, RunFolder.of(cfg.work_dir, tracker.run_id), lock)
@@ -163,12 +175,12 @@ class TrainingRun:
             if cfg.resume:
                 tracker.set_tags(tags)
             else:
-                tracker.log_params(tracking.flatten(shareable(cfg)))
+                tracker.log_params(flatten(shareable(cfg)))
                 if data is not None:
                     tracker.log_params(data.params)
             run._write_config(cfg)
         except BaseException as e:  # a signal here ends a new run KILLED too: its job reruns
-            run.end(tracking.KILLED if cfg.resume else tracking.status_after(e))
+            run.end(KILLED if cfg.resume else status_after(e))
             raise
         if cfg.tracking.get("system_metrics"):
             tracker.start_system_metrics(cfg.tracking.system_metrics_every)
@@ -185,7 +197,7 @@ class TrainingRun:
     def attach(cls, client, work_dir, run_id: str) -> TrainingRun:
         """An existing run, to log more to (an evaluation's videos) or to end (an earlier
         attempt superseded), without reopening it."""
-        return cls(tracking.Tracker.attach(client, run_id, "."), RunFolder.of(work_dir, run_id))
+        return cls(Tracker.attach(client, run_id, "."), RunFolder.of(work_dir, run_id))
 
     # --- while it trains ----------------------------------------------------------------------
     @property
@@ -207,7 +219,7 @@ class TrainingRun:
         self.tracker.set_tags(tags)
 
     def mark_pruned(self, step: int) -> None:
-        self.tracker.set_tags({tracking.PRUNED_TAG: step})
+        self.tracker.set_tags({PRUNED_TAG: step})
 
     def save_checkpoint(
         self, name: str, checkpoint: Checkpoint, resume_copy: Checkpoint | None = None
@@ -246,7 +258,7 @@ def last_checkpoint(client, work_dir, run_id: str) -> Checkpoint:
     folder = RunFolder.of(work_dir, run_id)
     local = folder.resume_checkpoint
     try:
-        uploaded = tracking.download_checkpoint(client, run_id, "last.pt", folder.download)
+        uploaded = download_checkpoint(client, run_id, "last.pt", folder.download)
     except CheckpointError:  # never uploaded (e.g. the store was down): the local copy will do
         if not local.is_file():
             raise
@@ -310,17 +322,17 @@ def supersede(client, work_dir, run_ids: list[str], why: str) -> None:
     for run_id in run_ids:
         run = TrainingRun.attach(client, work_dir, run_id)
         run.set_tags({SUPERSEDED_TAG: why})
-        run.end(tracking.FAILED)
+        run.end(FAILED)
 
 
 @contextmanager
-def ending(runs: list[TrainingRun], population: bool = False):
+def ending_and_saying_how(runs: list[TrainingRun], population: bool = False):
     """Every run in ``runs`` (a list that may grow inside the block) ends FINISHED, KILLED or
-    FAILED on the way out (:func:`walkers.tracking.ending`); then the log says how each ended,
-    where to see it, and the command that continues it (a population's always, a single run's
+    FAILED on the way out (:func:`walkers.tracking.tracker.ending`); then the log says how each
+    ended, where to see it, and the command that continues it (a population's always, a single run's
     if it was killed). A Ctrl-C that ends runs says which, for the command's last line."""
     try:
-        with tracking.ending(runs):
+        with ending(runs):
             yield
     except KeyboardInterrupt as stop:
         if runs and not isinstance(stop, RunsStopped):
@@ -341,7 +353,7 @@ def ending(runs: list[TrainingRun], population: bool = False):
                 "command",
                 ids,
             )
-        elif runs and runs[0].status == tracking.KILLED:
+        elif runs and runs[0].status == KILLED:
             log.info(
                 "continue it: python -m walkers.train resume=%s, or the same command",
                 runs[0].run_id,

@@ -1,7 +1,8 @@
 """One training session from a composed config, in three steps: plan, build, run.
 
-    plan    walkers.training.plan.plan: what the command will do (new runs, runs to continue
-            and from which checkpoints, or nothing: they finished), the config checked once
+    plan    walkers.training.command_plan.plan_command: what the command will do (new runs, runs
+            to continue and from which checkpoints, or nothing: they finished), the config
+            checked once
     build   the data, the envs, the agent, the MLflow run(s), their books (:func:`build`)
     run     the loop (walkers.training.loops), then every run ends with its status
 
@@ -9,8 +10,8 @@
                   (an agent declaring several_envs, num_envs > 1: a vector env -> train_vectorized)
     population:   K members' envs + one agent -> K TrainingRuns and books -> train_population
 
-Every run opened is ended by :func:`walkers.training.run.ending`, whatever way the session ends;
-every env made is closed.
+Every run opened is ended by :func:`walkers.training.run.ending_and_saying_how`, whatever way
+the session ends; every env made is closed.
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ from omegaconf import DictConfig
 from walkers.agents.factory import build_agent
 from walkers.seeding import eval_start_seeds
 from walkers.training.bookkeeping import RunBook
+from walkers.training.command_plan import Plan, plan_command
 from walkers.training.envs import env_spaces, make_env, make_vector_env, steps_in_workers
 from walkers.training.evaluation import (
     PopulationEvaluation,
@@ -41,13 +43,12 @@ from walkers.training.loops import (
     train_sb3,
     train_vectorized,
 )
-from walkers.training.plan import Plan, plan
 from walkers.training.provenance import MEMBER_TAG, POPULATION_TAG, shareable
 from walkers.training.run import (
     ENV_STEP_AXIS,
     GRADIENT_STEP_AXIS,
     TrainingRun,
-    ending,
+    ending_and_saying_how,
 )
 from walkers.training.settings import RunSettings
 
@@ -59,7 +60,7 @@ log = logging.getLogger("walkers")
 EvaluationReporter = Callable[[DictConfig], Callable[[int, float], bool] | None]
 
 
-def train(
+def run_training(
     cfg: DictConfig,
     overrides: list[str] | tuple = (),
     tags: dict | None = None,
@@ -68,7 +69,7 @@ def train(
     """Train as ``cfg`` says; ``overrides`` are the command-line overrides (used by resume);
     ``tags`` go on the run(s), new or resumed (a multirun job's place in its multirun);
     ``reporter`` makes what a single run's evaluations report to (a sweep's trial)."""
-    work = plan(cfg, overrides)
+    work = plan_command(cfg, overrides)
     if work.finished:  # said by the plan; the runs' result, nothing trained
         return work.finished_value()
     if work.cfg.torch_threads:
@@ -145,7 +146,9 @@ def _build_single(
         agent.attach(env, cfg.total_steps)  # SB3's model is built on its training env
     axis = GRADIENT_STEP_AXIS if data is not None else ENV_STEP_AXIS
     runs = []
-    closing.enter_context(ending(runs))  # from here on every run opened ends with a status
+    closing.enter_context(
+        ending_and_saying_how(runs)
+    )  # from here on every run opened ends with a status
     tags = tags if start is not None else tags | work.new_run_tags
     runs.append(TrainingRun.open(work.client, cfg, axis, data, extra_tags=tags))
     options = {}
@@ -175,7 +178,7 @@ def _build_population(work: Plan, closing: ExitStack, tags: dict) -> Session:
         agent, eval_envs, [eval_start_seeds(m.seed, m.eval_episodes) for m in work.members]
     )
     runs = []
-    closing.enter_context(ending(runs, population=True))
+    closing.enter_context(ending_and_saying_how(runs, population=True))
     for i, member in enumerate(work.members):
         place = {POPULATION_TAG: str(k), MEMBER_TAG: str(i)}
         new = {} if work.starts[i] is not None else work.new_run_tags

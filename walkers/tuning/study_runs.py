@@ -12,9 +12,11 @@ import optuna
 from omegaconf import DictConfig, OmegaConf
 from optuna.trial import TrialState
 
-from walkers import tracking
 from walkers.secrets import redacted
+from walkers.tracking.client import tags_equal
 from walkers.tracking.hydra_callbacks import stop_remote_jobs
+from walkers.tracking.names import JOB_KEY_TAG, KIND_TAG, status_after
+from walkers.tracking.tracker import Tracker, end_running
 from walkers.tuning.objective import DONE, trials_done
 from walkers.tuning.optuna_internals import stored_trial
 from walkers.tuning.studies import original_number
@@ -31,19 +33,19 @@ def end_jobs_runs(client, experiment: str, job_keys: list[str], error: BaseExcep
     sweeper): its jobs still out there are stopped (a Ray driver's tasks end with it) and their
     runs left RUNNING are ended, KILLED after Ctrl-C, else FAILED, with the reason as a tag."""
     stop_remote_jobs()
-    status = tracking.status_after(error)
+    status = status_after(error)
     reason = f"its batch's launch ended: {type(error).__name__}: {error}"
     try:
         for key in job_keys:
-            query = tracking.tags_equal({tracking.JOB_KEY_TAG: key})
-            for run_id in tracking.end_running(client, experiment, query, status, reason):
+            query = tags_equal({JOB_KEY_TAG: key})
+            for run_id in end_running(client, experiment, query, status, reason):
                 log.warning("run %s of job %s was left RUNNING: %s", run_id, key, status)
     except Exception as e:  # the launcher's error is the one to report
         log.error("could not end the runs of the failed batch: %s", e)
 
 
 def log_best(
-    parent: tracking.Tracker, study: optuna.Study, best: optuna.trial.FrozenTrial, results: Path
+    parent: Tracker, study: optuna.Study, best: optuna.trial.FrozenTrial, results: Path
 ) -> None:
     """The best trial on the study's parent run, in forms a resumed study may change.
 
@@ -60,8 +62,8 @@ def log_best(
 
 
 def open_trial_run(
-    parent: tracking.Tracker | None, study: optuna.Study, trial: optuna.Trial
-) -> tracking.Tracker | None:
+    parent: Tracker | None, study: optuna.Study, trial: optuna.Trial
+) -> Tracker | None:
     """A trial's own MLflow run (``seeds_per_trial`` > 1): its parameters and outcome, nested
     under the study's run, its seeds' runs nested under it. A retry of a dead sweeper's trial
     takes over the run of the trial it retries (as its seeds' jobs continue theirs)."""
@@ -69,7 +71,7 @@ def open_trial_run(
         return None
     original = original_number(stored_trial(study, trial))
     tags = {
-        tracking.KIND_TAG: "trial",
+        KIND_TAG: "trial",
         STUDY_TAG: study.study_name,
         "walkers.trial": str(trial.number),
         ORIGINAL_TRIAL_TAG: str(original),
@@ -78,18 +80,14 @@ def open_trial_run(
     experiment = parent.client.get_experiment(parent.experiment_id).name
     name = f"{study.study_name}-trial{trial.number}"
     if original == trial.number:  # a first attempt: a run of its own
-        return tracking.Tracker.start(parent.client, experiment, name, tags, parent.spool_dir)
-    query = tracking.tags_equal(  # a retry: the run of the trial it repeats
-        {tracking.KIND_TAG: "trial", STUDY_TAG: study.study_name, ORIGINAL_TRIAL_TAG: original}
+        return Tracker.start(parent.client, experiment, name, tags, parent.spool_dir)
+    query = tags_equal(  # a retry: the run of the trial it repeats
+        {KIND_TAG: "trial", STUDY_TAG: study.study_name, ORIGINAL_TRIAL_TAG: original}
     )
-    return tracking.Tracker.reopen_or_start(
-        parent.client, experiment, query, name, tags, parent.spool_dir
-    )
+    return Tracker.reopen_or_start(parent.client, experiment, query, name, tags, parent.spool_dir)
 
 
-def log_trial_outcome(
-    run: tracking.Tracker, study: optuna.Study, trial: optuna.Trial, metric: str
-) -> None:
+def log_trial_outcome(run: Tracker, study: optuna.Study, trial: optuna.Trial, metric: str) -> None:
     """The trial's sampled parameters, state and value (the mean over its seeds) on its run."""
     frozen = stored_trial(study, trial)
     run.log_params({k: str(v) for k, v in frozen.params.items()})
@@ -100,17 +98,17 @@ def log_trial_outcome(
 
 def open_parent_run(
     client, config: DictConfig, study: optuna.Study, storage: str | None
-) -> tracking.Tracker:
+) -> Tracker:
     """The study's MLflow parent run: reopened when a study is resumed, else created."""
     tags = {
-        tracking.KIND_TAG: "study",
+        KIND_TAG: "study",
         STUDY_TAG: study.study_name,
         "optuna.storage": str(redacted(storage)),
         "walkers.optimized_metric": config.optimized_metric,
         "walkers.direction": study.direction.name.lower(),
     }
-    query = tracking.tags_equal({tracking.KIND_TAG: "study", STUDY_TAG: study.study_name})
-    return tracking.Tracker.reopen_or_start(
+    query = tags_equal({KIND_TAG: "study", STUDY_TAG: study.study_name})
+    return Tracker.reopen_or_start(
         client,
         config.tracking.experiment,
         query,
@@ -123,7 +121,7 @@ def open_parent_run(
 def report_best(
     study: optuna.Study,
     fixed: dict,
-    parent: tracking.Tracker | None,
+    parent: Tracker | None,
     storage: str | None,
     config: DictConfig,
     direction: str,

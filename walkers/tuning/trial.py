@@ -1,6 +1,7 @@
 """The job side of an Optuna sweep: report evaluations to the trial, stop when it is pruned.
 
-The sweeper (:mod:`walkers.tuning.sweeper`) passes each job its study, storage and trial id as
+The sweeper (:mod:`walkers.tuning.optuna_sweeper`) passes each job its study, storage and trial
+id as
 ``trial.*`` overrides; the pruner is the job's own ``pruner`` config (an ``optuna.pruners``
 class, from ``conf/pruner/``), so a sweep file chooses it and a command line can swap it.
 

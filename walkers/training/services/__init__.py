@@ -15,11 +15,11 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from walkers.training.services.base import RunService
 from walkers.training.services.divergence import DivergenceWatch, TrainingDiverged
 from walkers.training.services.evaluations import Evaluations, Pruning
 from walkers.training.services.metrics_log import MetricsLog
 from walkers.training.services.periodic_checkpoints import PeriodicCheckpoints
+from walkers.training.services.service import RunService
 from walkers.training.services.videos import Videos
 from walkers.training.settings import RunSettings
 

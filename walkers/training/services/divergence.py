@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from walkers.agents.common.health import SKIPPED_IN_A_ROW
 from walkers.training.provenance import DIVERGED_TAG
-from walkers.training.services.base import RunService
+from walkers.training.services.service import RunService
 
 
 class TrainingDiverged(RuntimeError):

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from walkers.training.services.base import RunService
+from walkers.training.services.service import RunService
 
 
 class Evaluations(RunService):

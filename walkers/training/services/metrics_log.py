@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import time
 
-from walkers.training.services.base import RunService
+from walkers.training.services.service import RunService
 
 CPU_HOURS = "perf/cpu_hours"
 

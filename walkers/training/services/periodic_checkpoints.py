@@ -3,7 +3,7 @@ checkpoint is written by the book's ``finish``)."""
 
 from __future__ import annotations
 
-from walkers.training.services.base import RunService
+from walkers.training.services.service import RunService
 
 
 class PeriodicCheckpoints(RunService):

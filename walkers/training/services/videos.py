@@ -4,7 +4,7 @@ logged to the run's ``videos/``."""
 from __future__ import annotations
 
 from walkers.training.greedy_episodes import record_episodes
-from walkers.training.services.base import RunService
+from walkers.training.services.service import RunService
 from walkers.training.video import write_gif
 
 #: Frames kept in the gif (a glance, not a film).

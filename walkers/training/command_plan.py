@@ -1,6 +1,6 @@
 """What one training command will do, decided before anything is built: its :class:`Plan`.
 
-    plan(cfg, overrides) -> Plan: new run(s) | run(s) to continue, each from its checkpoint
+    plan_command(cfg, overrides) -> Plan: new run(s) | run(s) to continue, each from its checkpoint
                                 | nothing (the command's runs FINISHED)
 
 Every way a run is continued is decided here, with :mod:`walkers.training.attempts` (the same
@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 from omegaconf import DictConfig
 
-from walkers import tracking
+from walkers.tracking.client import connect
 from walkers.training import attempts, resume
 from walkers.training.checkpoints import Checkpoint
 from walkers.training.provenance import COMMAND_KEY_TAG
@@ -56,13 +56,13 @@ class Plan:
         return float(np.mean(values))
 
 
-def plan(cfg: DictConfig, overrides=()) -> Plan:
+def plan_command(cfg: DictConfig, overrides=()) -> Plan:
     """What ``cfg`` (a composed config; ``overrides``: its command-line overrides) will do."""
     check_command(cfg)  # before anything is read or created
     if not cfg.resume:
         validate(cfg)  # before the store is asked anything
     resumed = f"resume={cfg.resume!r}" if isinstance(cfg.resume, str) else f"resume={cfg.resume}"
-    client = tracking.connect(cfg.tracking.uri, looking_for=resumed if cfg.resume else None)
+    client = connect(cfg.tracking.uri, looking_for=resumed if cfg.resume else None)
     run_dataset = loader()
     attempt = attempts.of_command(client, cfg, run_dataset)
     cfg, new_run_tags = attempt.cfg, {COMMAND_KEY_TAG: attempt.key}

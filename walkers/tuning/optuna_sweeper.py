@@ -55,10 +55,11 @@ from hydra_plugins.hydra_optuna_sweeper._impl import (
 from omegaconf import DictConfig, OmegaConf
 from optuna.trial import TrialState
 
-from walkers import tracking
 from walkers.errors import ConfigError
 from walkers.secrets import redacted
+from walkers.tracking.client import connect
 from walkers.tracking.hydra_callbacks import missing_on_ray_nodes
+from walkers.tracking.tracker import Tracker, ending
 from walkers.tuning.objective import check_objective, record_outcome, sweep_direction, trials_done
 from walkers.tuning.optuna_internals import stored_trial, trial_id
 from walkers.tuning.studies import (
@@ -252,7 +253,7 @@ class OptunaStudySweeper(OptunaSweeperImpl):
             space.pop(name, None)
         try:  # both stores answer before anything is created in either
             self._check_settings()
-            client = tracking.connect(self.config.tracking.uri)
+            client = connect(self.config.tracking.uri)
             settings = self.config.optuna
             self.rdb = self.storage and open_storage(
                 self.storage, settings.heartbeat_interval, settings.grace_period, settings.max_retry
@@ -268,9 +269,7 @@ class OptunaStudySweeper(OptunaSweeperImpl):
         self.client = client
         with (
             # one run for all the study's sweepers: the last one out ends it
-            tracking.ending(
-                [parent] if parent is not None else [], lambda: bool(patiently(running, study))
-            ),
+            ending([parent] if parent is not None else [], lambda: bool(patiently(running, study))),
             Heartbeats(self.rdb, settings.heartbeat_interval if self.rdb else None) as beats,
         ):
             while True:
@@ -306,10 +305,10 @@ class OptunaStudySweeper(OptunaSweeperImpl):
         FAIL and their MLflow runs ended, so nothing is left RUNNING.
         """
         seeds = [self.config.seed + i for i in range(self.config.seeds_per_trial)]
-        trial_runs: list[tracking.Tracker | None] = []  # per trial (None: one seed, no run)
-        opened: list[tracking.Tracker] = []
+        trial_runs: list[Tracker | None] = []  # per trial (None: one seed, no run)
+        opened: list[Tracker] = []
         jobs, keys = [], []  # keys: each job's, to end its runs if the launch fails
-        with tracking.ending(opened):  # a list that grows: every trial run opened is ended
+        with ending(opened):  # a list that grows: every trial run opened is ended
             try:
                 for trial in trials:
                     run = open_trial_run(parent, study, trial) if len(seeds) > 1 else None

@@ -39,13 +39,16 @@ from omegaconf import DictConfig, open_dict
 
 from walkers import tracking
 from walkers.ab import ledger
+from walkers.ab.outputs import write_results
 from walkers.ab.reference_arms import reference_scores
-from walkers.ab.results import write_results
 from walkers.ab.rounds import standing
 from walkers.ab.spec import StudySpec
 from walkers.analysis.sequential import A_BETTER, B_BETTER, EQUAL, Design, equal_line
 from walkers.cli import jobs_at_once, one_line_hydra_error
 from walkers.errors import ConfigError
+from walkers.tracking.client import connect, flatten
+from walkers.tracking.names import JOB_KEY_TAG
+from walkers.tracking.tracker import ending
 from walkers.training.provenance import DIVERGED_TAG, SEED_IN_KEY, shareable
 from walkers.training.validate import validate
 from walkers.tuning.study_runs import end_jobs_runs
@@ -90,7 +93,7 @@ class StudySweeper(Sweeper):
             }
             self.shared = {env: self._job_config(base, spec, None, env) for env in spec.envs}
             self.reference_scores = reference_scores(spec, self.shared)
-            client = tracking.connect(self.config.tracking.uri)
+            client = connect(self.config.tracking.uri)
             experiment = self.config.tracking.experiment
             ledger.check_arms_unchanged(ledger.job_runs(client, experiment, spec), spec, configs)
             self.populations = self._population_places(base, spec, configs)
@@ -100,7 +103,7 @@ class StudySweeper(Sweeper):
             sys.exit(2)
         self._say_design(spec, design)
         try:
-            with tracking.ending([study]):
+            with ending([study]):
                 ledger.log_deciding_looks(study, design)
                 final = self._rounds(client, experiment, spec, base, study)
         except KeyboardInterrupt:
@@ -150,7 +153,7 @@ class StudySweeper(Sweeper):
             # round ends with its last job, and a long one started last would run alone
             logged = ledger.steps_logged(runs)
             jobs.sort(key=lambda job: logged.get(spec.job_key(*job), 0))
-            started = {run.data.tags.get(tracking.JOB_KEY_TAG) for run in runs}
+            started = {run.data.tags.get(JOB_KEY_TAG) for run in runs}
             launches = self._launches(spec, jobs, started)
             log.info(
                 "study %r, look %d: %d of %d questions open; launching %d jobs%s",
@@ -331,7 +334,7 @@ class StudySweeper(Sweeper):
             validate(cfg)
         except ConfigError as e:
             raise ConfigError(f"{where} on {env}: {e}") from None
-        return tracking.flatten(shareable(cfg))
+        return flatten(shareable(cfg))
 
     def _say_design(self, spec: StudySpec, design: Design) -> None:
         log.info(

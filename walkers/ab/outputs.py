@@ -16,12 +16,12 @@ from pathlib import Path
 from hydra.types import RunMode
 from omegaconf import DictConfig, open_dict
 
-from walkers import tracking
 from walkers.ab.spec import StudySpec
 from walkers.analysis.comparison import compare
 from walkers.analysis.references import recorded_fingerprint
 from walkers.analysis.suite_report import compare_suite
 from walkers.tracking import bundles
+from walkers.tracking.names import FINISHED
 
 log = logging.getLogger("walkers")
 
@@ -61,7 +61,7 @@ def write_results(
         log.warning("study %r: no report: %s", spec.name, e)
     try:
         experiment_id = client.get_experiment_by_name(experiment).experiment_id
-        runs = bundles.select_runs(client, experiment_id, spec.name, {}, [tracking.FINISHED])
+        runs = bundles.select_runs(client, experiment_id, spec.name, {}, [FINISHED])
         done = bundles.export_runs(
             client,
             experiment,

@@ -10,9 +10,10 @@
 
 Off-policy agents learn every step after their warm-up, on-policy ones when their batch is
 complete (REINFORCE: episodes; PPO: a rollout of steps): the agent decides inside ``update()``,
-the loop is the same. Every loop ends the same way (:func:`_running`): a progress bar, the
-throughput over the session, and on Ctrl-C (or SIGTERM turned into one) a last checkpoint of
-every run before the interrupt propagates.
+the loop is the same. Every loop reads top to bottom inside :func:`progress_shown` (a progress
+bar; on Ctrl-C, or SIGTERM turned into one, a last checkpoint of every run before the interrupt
+propagates) and ends with :func:`finish` (each run's summary, with its throughput over the
+session).
 
 A stop lands between steps, never inside one: each step of walkers' own loops (act, env step,
 observe, update, and its logging, evaluation and checkpoint when due) runs shielded
@@ -26,7 +27,8 @@ stepped and the step uncounted: the resume stepped that critic twice).
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 
 import gymnasium as gym
 import numpy as np
@@ -44,8 +46,7 @@ from walkers.training.envs import VectorStep, step_vector_env
 def train_online(agent: Agent, env: gym.Env, book: RunBook) -> dict[str, float]:
     """Until ``total_steps`` env steps (or a pruner stops the run); returns the summary."""
     p = book.progress
-
-    def loop(bar: tqdm) -> None:
+    with progress_shown([book]) as bar:
         obs, _ = book.first_reset()
         losses: dict[str, torch.Tensor] = {}
         while p.step < book.settings.total_steps:
@@ -56,9 +57,8 @@ def train_online(agent: Agent, env: gym.Env, book: RunBook) -> dict[str, float]:
                     book.record_episode(*episode)
                 stop = _after_step(book, losses, bar)
             if stop:
-                return
-
-    return _running([book], loop)[0]
+                break
+    return finish([book], bar)[0]
 
 
 def online_step(agent: Agent, env: gym.Env, obs, losses: dict) -> tuple[np.ndarray, tuple | None]:
@@ -82,11 +82,11 @@ def train_vectorized(
     ``checkpoint_every`` is: walkers.training.validate), which finish their episodes in the
     step (``AutoresetMode.SAME_STEP``); returns the summary."""
     p, n = book.progress, envs.num_envs
-
-    def loop(bar: tqdm) -> None:
+    with progress_shown([book]) as bar:
         obs, _ = book.first_reset()  # env i from the run's seed + i
         losses: dict[str, torch.Tensor] = {}
-        while p.step < book.settings.total_steps:
+        stop = False
+        while not stop and p.step < book.settings.total_steps:
             with shielded():
                 step = vectorized_step(agent, envs, obs, losses)
                 obs = step.next_obs
@@ -94,10 +94,10 @@ def train_vectorized(
                     p.step += 1
                     if i in step.ended:
                         book.record_episode(*step.episode_statistics(i))
-                    if _after_step(book, losses, bar):
-                        return
-
-    return _running([book], loop)[0]
+                    stop = _after_step(book, losses, bar)
+                    if stop:
+                        break
+    return finish([book], bar)[0]
 
 
 def vectorized_step(agent: Agent, envs: gym.vector.VectorEnv, obs, losses: dict) -> VectorStep:
@@ -112,17 +112,15 @@ def vectorized_step(agent: Agent, envs: gym.vector.VectorEnv, obs, losses: dict)
 def train_offline(agent: Agent, book: RunBook) -> dict[str, float]:
     """Until ``total_steps`` gradient steps on the agent's dataset; returns the summary."""
     p = book.progress
-
-    def loop(bar: tqdm) -> None:
+    with progress_shown([book]) as bar:
         while p.step < book.settings.total_steps:
             with shielded():
                 losses = agent.update()
                 p.step += 1
                 stop = _after_step(book, losses, bar)
             if stop:
-                return
-
-    return _running([book], loop)[0]
+                break
+    return finish([book], bar)[0]
 
 
 def train_population(
@@ -131,8 +129,7 @@ def train_population(
     """K members in one agent, their K envs one vector env, one book each, in lockstep; one
     summary each (with ``perf/population_sps``, the aggregate throughput)."""
     first = books[0]  # the members share the step, the budget and the schedules
-
-    def loop(bar: tqdm) -> None:
+    with progress_shown(books) as bar:
         # each member's env seeded as a single run of its seed is (or its RNG restored)
         obs, _ = envs.reset(seed=[book.first_reset_seed() for book in books])
         lockstep = Lockstep(agent, envs, obs)
@@ -140,8 +137,7 @@ def train_population(
             with shielded():
                 step, losses = lockstep.step()
                 _population_books(books, step, losses, bar)
-
-    return _running(books, loop, aggregate="perf/population_sps")
+    return finish(books, bar, aggregate="perf/population_sps")
 
 
 class Lockstep:
@@ -229,15 +225,14 @@ def train_sb3(agent: SB3Twin, book: RunBook) -> dict[str, float]:
             # and learns from the last step, then stops by itself
             return not stop and not (on_policy and p.step >= s.total_steps)
 
-    def loop(bar: tqdm) -> None:
+    with progress_shown([book]) as bar:
         if (seed := book.first_reset_seed()) is not None:
             agent.vec_env.seed(seed)  # SB3 resets the env itself, with this seed first
         with shielded():  # a stop ends learn() at SB3's next env step, never inside an update
             agent.model.learn(
                 s.total_steps - p.step, callback=BookKeeping(bar), reset_num_timesteps=False
             )
-
-    return _running([book], loop)[0]
+    return finish([book], bar)[0]
 
 
 def _after_step(book: RunBook, losses: dict[str, torch.Tensor], bar: tqdm) -> bool:
@@ -255,11 +250,13 @@ def _progress_bar(book: RunBook, bar: tqdm) -> None:
 
 
 class ProgressBar(tqdm):
-    """tqdm with the time left as :class:`PhaseEta` counts it."""
+    """tqdm with the time left as :class:`PhaseEta` counts it, and where and when this session
+    started (its throughput's origin)."""
 
-    def __init__(self, eta: PhaseEta, **kwargs):
-        self.eta = eta
-        super().__init__(**kwargs)
+    def __init__(self, eta: PhaseEta, initial: int, **kwargs):
+        self.eta, self.first_step = eta, initial
+        super().__init__(initial=initial, **kwargs)
+        self.start = time.perf_counter()
 
 
 class PhaseEta:
@@ -294,22 +291,19 @@ def _latest_evaluation(book: RunBook) -> dict[str, str]:
     return {"eval_return": f"{means[-1]:.1f}"} if means else {}
 
 
-def _running(
-    books: Sequence[RunBook], loop: Callable[[tqdm], None], aggregate: str | None = None
-) -> list[dict[str, float]]:
-    """Run ``loop`` with a progress bar; checkpoint every run on Ctrl-C; the runs' summaries.
-
-    Throughput (``rate_metric``) counts the steps of this session; ``aggregate`` names a metric
-    for the throughput of all the books together (a population's). A Ctrl-C lands between
-    steps, however the training was started (:func:`walkers.interrupts.stops_between_steps`), so
-    the book's step and the agent's count of what it observed agree in every checkpoint: the
-    book's progress is the run's step count, and nothing has to reconcile the two.
-    """
+@contextmanager
+def progress_shown(books: Sequence[RunBook]) -> Iterator[ProgressBar]:
+    """The loop's progress bar, from the books' step on (a resumed run's with its latest
+    evaluation's return), their clocks started; on Ctrl-C every run's last checkpoint before the
+    interrupt propagates. A Ctrl-C lands between steps, however the training was started
+    (:func:`walkers.interrupts.stops_between_steps`), so the book's step and the agent's count
+    of what it observed agree in every checkpoint: the book's progress is the run's step count,
+    and nothing has to reconcile the two."""
     first = books[0]
     s, p = first.settings, first.progress
     eta = PhaseEta(s.total_steps, getattr(first.agent, "update_after", 0))
-    bar = ProgressBar(  # a resumed run's bar starts at its step, with its latest evaluation's
-        eta,  # return
+    bar = ProgressBar(
+        eta,
         total=s.total_steps,
         initial=p.step,
         postfix=eta.fields(p.step) | _latest_evaluation(first),
@@ -319,12 +313,11 @@ def _running(
         mininterval=1.0,
         bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt} [{elapsed}, {rate_fmt}{postfix}]",
     )
-    start_step, start = p.step, time.perf_counter()
     for book in books:
-        book.start_clock(start, cpu_share=1 / len(books))
+        book.start_clock(bar.start, cpu_share=1 / len(books))
     with stops_between_steps():  # the last checkpoints too: a second Ctrl-C waits for them
         try:
-            loop(bar)
+            yield bar
         except KeyboardInterrupt:
             for book in books:
                 book.checkpoint_and_flush()
@@ -332,8 +325,17 @@ def _running(
         finally:  # the bar's last line: the step the run ended at (or its checkpoint holds)
             bar.update(p.step - bar.n)
             bar.close()
-    if p.step == start_step:  # resumed at its budget: nothing ran, no rate
+
+
+def finish(
+    books: Sequence[RunBook], bar: ProgressBar, aggregate: str | None = None
+) -> list[dict[str, float]]:
+    """Each run's ``final/*`` summary, with its throughput over this session (``rate_metric``);
+    ``aggregate`` names a metric for the throughput of all the books together (a
+    population's)."""
+    p = books[0].progress
+    if p.step == bar.first_step:  # resumed at its budget: nothing ran, no rate
         return [book.finish(None) for book in books]
-    rate = (p.step - start_step) / (time.perf_counter() - start)
+    rate = (p.step - bar.first_step) / (time.perf_counter() - bar.start)
     extra = {aggregate: rate * len(books)} if aggregate else {}
     return [book.finish(rate, extra) for book in books]

@@ -20,9 +20,9 @@ process, before and after the training, the bare env step: Walker2d-v5 as walker
 
 **The split** (``--split``) runs the same training again in that process with a timer around
 each phase of the loop, named by the code it wraps (a phase inside another counts to the outer
-one): ``books`` is ``_population_books`` (episode records, step counts, the services when due),
-and ``the step's own lines`` the rest of :class:`walkers.training.loops.Lockstep`'s step. The
-timers add about a microsecond a call: read the split beside the rate, not instead of it.
+one): ``books`` is ``_population_books`` (episode records, step counts, each book's after_step
+when due), and ``the step's own lines`` the rest of :class:`walkers.training.loops.Lockstep`'s
+step. The timers add about a microsecond a call: read the split beside the rate, not instead of it.
 
 A benchmark, not a test: nothing here asserts on time.
 """

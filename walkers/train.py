@@ -104,7 +104,7 @@ def fail(message: str, exit_code: int):
 
 @hydra.main(config_path=str(CONF_DIR), config_name="train", execution_whitelist=["walkers.*"])
 def main(cfg: DictConfig) -> float:
-    from walkers.training.services import TrainingDiverged
+    from walkers.training.bookkeeping import TrainingDiverged
 
     stop_cleanly_on_signals()  # in a worker process too: SIGTERM ends the run like Ctrl-C
     hydra_cfg = HydraConfig.get()

@@ -11,7 +11,7 @@ import torch
 from tests.conftest import all_runs, compose_cfg
 from walkers.train import train
 from walkers.training import checkpoints
-from walkers.training.services import TrainingDiverged
+from walkers.training.bookkeeping import TrainingDiverged
 
 
 class NaNRewardsAfter(gym.Wrapper):

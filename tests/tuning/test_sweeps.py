@@ -74,13 +74,15 @@ def test_study_runs_resumes_and_logs_every_trial(store):
 
 
 def test_a_hopeless_trial_is_pruned_early(store):
-    # Pendulum returns are always negative: a threshold pruner at 0 stops at the first eval.
+    # Pendulum returns are always negative: a threshold pruner at 0 stops at the first eval,
+    # and nothing due after the evaluation at that step runs (the video of step 200)
     study = sweep(
         store,
         "hydra.sweeper.n_trials=1",
         "sweep/pruner=threshold",
         "sweep.pruner.lower=0.0",
         "sweep.warmup_steps=0",
+        "video_every=100",
     )
     (trial,) = study.trials
     assert trial.state == TrialState.PRUNED and trial.user_attrs["pruned_at_step"] == 200
@@ -90,6 +92,8 @@ def test_a_hopeless_trial_is_pruned_early(store):
         m.step for m in store["client"].get_metric_history(run.info.run_id, "eval/return_mean")
     ]
     assert steps == [200]  # it stopped there instead of training to 600
+    videos = [a.path for a in store["client"].list_artifacts(run.info.run_id, "videos")]
+    assert len(videos) == 1 and "100" in videos[0], videos  # step 100's, not 200's
 
 
 def _job_return(value=None, error: Exception | None = None) -> JobReturn:

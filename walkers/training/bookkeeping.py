@@ -1,10 +1,11 @@
 """Per-run bookkeeping that every training loop shares.
 
 A loop only acts, steps, observes and updates (:mod:`walkers.training.loops`); after each step it
-hands the :class:`RunBook` the step's losses, and the book has its run's services do what is due
-(:mod:`walkers.training.services`: metric logging, the divergence check, evaluations, pruning,
-videos, periodic checkpoints, one job each, chosen by the run's settings). The book itself holds
-the run's progress, its checkpoints (``last.pt``, ``best.pt``, the local resume copy, each a
+hands the :class:`RunBook` the step's losses, and :meth:`RunBook.after_step` does what is due
+there, top to bottom: the metrics log and the divergence check (every ``log_every`` steps), the
+evaluation and a sweep's pruner (every ``eval_every`` and at the last), a video (every
+``video_every``), a checkpoint (every ``checkpoint_every``). The book also holds the run's
+progress, its checkpoints (``last.pt``, ``best.pt``, the local resume copy, each a
 :class:`~walkers.training.checkpoints.Checkpoint`), the training env's first reset, the episode
 log, the CPU-time count and the ``final/*`` summary. A resumed run's book starts from its last
 checkpoint (``start``). A population has one book per member.
@@ -23,6 +24,7 @@ import gymnasium as gym
 import torch
 
 from walkers.agents.base import Agent
+from walkers.agents.common.health import SKIPPED_IN_A_ROW
 from walkers.metrics import run_summary
 from walkers.seeding import (
     env_rng_state,
@@ -34,11 +36,21 @@ from walkers.seeding import (
 )
 from walkers.training.checkpoints import Checkpoint
 from walkers.training.evaluation import Evaluation, greedy_evaluation
+from walkers.training.greedy_episodes import record_episodes
+from walkers.training.provenance import DIVERGED_TAG
 from walkers.training.run import ENV_STEP_AXIS, Axis, TrainingRun
-from walkers.training.services import RunService, chosen_services
 from walkers.training.settings import RunSettings
+from walkers.training.video import write_gif
 
 log = logging.getLogger("walkers")
+
+CPU_HOURS = "perf/cpu_hours"
+#: Frames kept in a training video's gif (a glance, not a film).
+TRAINING_GIF_FRAMES = 500
+
+
+class TrainingDiverged(RuntimeError):
+    """Every update for ``divergence_patience`` updates in a row had a NaN/inf loss."""
 
 
 @dataclass
@@ -60,9 +72,9 @@ class RunBook:
     the schedules of evaluations, checkpoints, logs and videos, the seed and the divergence
     patience; ``threshold`` is the env's return for ``final/steps_to_threshold``; ``env_member``:
     a population member's place in the vector env ``env`` of all members' training envs;
-    ``on_evaluation`` (a sweep trial's pruner, ``(step, eval mean) -> stop?``) adds pruning to
-    the services; ``config``: the run's shareable config, kept in every checkpoint; ``start``:
-    the checkpoint a resumed run goes on from (:meth:`continue_from`)."""
+    ``on_evaluation``: a sweep trial's pruner, ``(step, eval mean) -> stop?``; ``config``: the
+    run's shareable config, kept in every checkpoint; ``start``: the checkpoint a resumed run
+    goes on from (:meth:`continue_from`)."""
 
     def __init__(
         self,
@@ -86,9 +98,12 @@ class RunBook:
         self.env_member = env_member
         self.run, self.settings, self.threshold, self.axis = run, settings, threshold, axis
         self.config = config or {}
-        self.services: list[RunService] = chosen_services(settings, on_evaluation)
-        # the steps any service may have work at are multiples of these (or the last)
-        self._periods = sorted({service.every(settings) for service in self.services})
+        self.on_evaluation = on_evaluation
+        # the steps after_step may have work at are multiples of these (or the last)
+        periods = (settings.log_every, settings.eval_every, settings.checkpoint_every)
+        self._periods = sorted(
+            {*periods, *([settings.video_every] if settings.video_every else [])}
+        )
         self.evaluation = evaluation
         self.summarize = summarize or (lambda summary: summary)  # extra final/* metrics
         self.stopped_early = False
@@ -195,8 +210,7 @@ class RunBook:
         CPU time from here on, ``cpu_share`` of the process's (1/K for K members of a
         population)."""
         self._cpu_share, self._cpu_mark = cpu_share, time.process_time()
-        for service in self.services:
-            service.start(self, now)
+        self._logged_at = (self.progress.step, now)  # the metrics log's throughput since then
 
     def cpu_hours(self) -> float:
         """The run's CPU-hours so far: its checkpointed total plus this process's CPU time
@@ -207,18 +221,88 @@ class RunBook:
         return self.progress.cpu_seconds / 3600
 
     def due(self) -> bool:
-        """Whether any service may have work at the current step (a step of most runs has none:
-        then :meth:`after_step` is a few integer checks)."""
+        """Whether :meth:`after_step` may have work at the current step (a step of most runs has
+        none: then it is a few integer checks)."""
         step = self.progress.step
         return step == self.settings.total_steps or any(step % n == 0 for n in self._periods)
 
     def after_step(self, losses: Mapping[str, torch.Tensor | float]) -> bool:
-        """Each service in turn does what is due at the current step (``losses``: the step's
-        scalars, tensors or floats); True when one stops the run (the services after it are
-        skipped)."""
+        """What is due after the current step, in this order (``losses``: the step's scalars,
+        tensors or floats); True when a sweep's pruner stops the run (nothing after it runs)."""
         if not self.due():
             return False
-        return any(service.after_step(self, losses) for service in self.services)
+        p, s = self.progress, self.settings
+        step, last = p.step, p.step == s.total_steps
+        if step % s.log_every == 0:
+            self.log_metrics(losses)
+            self.check_divergence(losses)
+        if step % s.eval_every == 0 or last:
+            self.evaluate()
+            if self.on_evaluation is not None and not last:
+                if self.on_evaluation(step, p.eval_means[-1]):
+                    self.stopped_early = True  # a finished run is never "stopped early"
+                    return True
+        if s.video_every and step % s.video_every == 0:
+            self.record_video()
+        if step % s.checkpoint_every == 0 and not last:  # the last one is finish's
+            self.checkpoint_and_flush()
+        return False
+
+    def log_metrics(self, losses: Mapping[str, torch.Tensor | float]) -> None:
+        """The step's losses, the throughput since the last log, the CPU-hours so far."""
+        step, now = self.progress.step, time.perf_counter()
+        since, then = self._logged_at
+        self._logged_at = (step, now)
+        scalars = {key: float(value) for key, value in losses.items()}  # tensors or floats
+        rate = (step - since) / (now - then)
+        self.run.log_metrics(
+            {self.axis.rate_metric: rate, CPU_HOURS: self.cpu_hours()} | scalars, step
+        )
+
+    def check_divergence(self, losses: Mapping[str, torch.Tensor | float]) -> None:
+        """End the run FAILED (tagged with the step, its last good checkpoint kept) when its
+        last ``divergence_patience`` updates all had a NaN/inf loss or gradient, each skipped by
+        the NaN guard (:mod:`walkers.agents.common.health`)."""
+        if SKIPPED_IN_A_ROW not in losses:
+            return
+        in_a_row, step = float(losses[SKIPPED_IN_A_ROW]), self.progress.step
+        if in_a_row < self.settings.divergence_patience:
+            return
+        named = ", ".join(f"{k}={float(v)}" for k, v in losses.items() if k.startswith("loss/"))
+        kept = (
+            f"checkpoints/last.pt (step {self.last_checkpoint_step}) is the last good one"
+            if self.last_checkpoint_step is not None
+            else "no checkpoint had been written yet"
+        )
+        self.run.set_tags({DIVERGED_TAG: str(step)})
+        raise TrainingDiverged(
+            f"training diverged at step {step}: the last {int(in_a_row)} updates all had a "
+            f"NaN/inf loss or gradient ({named}) and were skipped; {kept}"
+        )
+
+    def evaluate(self) -> None:
+        """The run's evaluation (greedy episodes, or an offline run's normalized score):
+        ``eval/*`` logged, ``best.pt`` on a new best, and a flush, so the curves move in the
+        UI."""
+        p = self.progress
+        returns, extra = self.evaluation(self.agent, self.eval_env, self.eval_start_seeds)
+        mean = float(returns.mean())
+        p.eval_steps.append(p.step)
+        p.eval_means.append(mean)
+        metrics = {"eval/return_mean": mean, "eval/return_std": float(returns.std())}
+        self.run.log_metrics(metrics | extra, p.step)
+        if mean > p.best_eval:
+            p.best_eval = mean
+            self.save_checkpoint("best.pt")
+        self.run.flush()
+
+    def record_video(self) -> None:
+        """A gif of one greedy episode, from the first evaluation start state, to ``videos/``."""
+        _, frames, fps = record_episodes(self.agent, self.video_env, self.eval_start_seeds[:1])
+        path = self.run.folder.video(self.progress.step)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        write_gif(frames[:TRAINING_GIF_FRAMES], path, fps)
+        self.run.upload(path, "videos")
 
     # --- the end ------------------------------------------------------------------------------
     def finish(self, rate: float | None, extra: dict[str, float] | None = None) -> dict:

@@ -169,8 +169,8 @@ class Lockstep:
 
 def _population_books(books: Sequence[RunBook], step: VectorStep, losses, bar: tqdm) -> None:
     """The K books after a lockstep step: the ended episodes recorded, each step counted, and
-    only when a service has work at this step (the members share the schedules), each book's
-    services, its losses read from the device in one transfer when they are logged."""
+    only when something is due at this step (the members share the schedules), each book's
+    after_step, its losses read from the device in one transfer when they are logged."""
     for book in books:
         book.progress.step += 1
     for i in step.ended:

@@ -7,7 +7,7 @@ agent calls the guard where it takes the step, between ``backward()`` and ``step
 optimizer's ``found_inf``, which makes its step a no-op, here and nowhere else.
 Checks and counts are device tensors, so the guard adds no host-device sync to the hot loop; the
 trainer reads ``health/*`` only when it logs, and ends a run whose updates have all been skipped
-for too long (:class:`walkers.training.services.TrainingDiverged`).
+for too long (:class:`walkers.training.bookkeeping.TrainingDiverged`).
 """
 
 from __future__ import annotations

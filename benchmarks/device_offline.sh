@@ -54,7 +54,7 @@ store="sqlite:///$WORK/offline.db"
 jobs=$(echo "$SEEDS" | tr ',' '\n' | wc -l)
 echo "device_offline: $ARMS on $DATASET, seeds $SEEDS, $DEVICE, until ${DEADLINE}s"
 # the store first, once: the arms' multiruns would each migrate a new one at the same time
-(cd "$WORK" && PYTHONPATH=$REPO "$py" -c "from walkers import tracking; tracking.connect('$store')")
+(cd "$WORK" && PYTHONPATH=$REPO "$py" -c "from walkers.tracking.client import connect; connect('$store')")
 
 train() {  # train ALGO STEPS: the algorithm's seeds as the study's keyed multirun, to the deadline
   local algo=$1 steps=$2 extra_var="EXTRA_${1^^}"

@@ -37,7 +37,6 @@ from hydra.errors import HydraException
 from hydra.plugins.sweeper import Sweeper
 from omegaconf import DictConfig, open_dict
 
-from walkers import tracking
 from walkers.ab import ledger
 from walkers.ab.outputs import write_results
 from walkers.ab.reference_arms import reference_scores
@@ -368,7 +367,7 @@ def _refuse_diverged(runs: list, keys: set[str]) -> None:
     nondeterminism) would leave the arm's failures out of its samples."""
     for run in ledger.diverged(runs, keys):
         raise JobsFailed(
-            f"job {run.data.tags[tracking.JOB_KEY_TAG]} diverged at step "
+            f"job {run.data.tags[JOB_KEY_TAG]} diverged at step "
             f"{run.data.tags[DIVERGED_TAG]} (run {run.info.run_id}): a study can neither count "
             "the seed nor train it again (a new attempt would diverge again, or leave the arm's "
             "failures out of its samples); change the arm (a lower learning rate, say) and run it "

@@ -81,6 +81,8 @@ baseline: $(STAMP)  ## one algorithm's 1M-step baseline (3 envs x 3 seeds); reru
 study-original: $(STAMP)  ## the original study at 1M steps, at nice 19, in ~/.walkers/original
 	@mkdir -p $(ORIGINAL_DIR)
 	$(PY) -m walkers.ingest bundle=results/reinforce_walker2d/bundle tracking.uri=sqlite:///$(ORIGINAL_DIR)/mlflow.db
+	@# the TD3 seeds in flight when a session ended, with their checkpoints (a new machine continues them; here: nothing to add)
+	test ! -d results/original_in_flight/bundle || $(PY) -m walkers.ingest bundle=results/original_in_flight/bundle tracking.uri=sqlite:///$(ORIGINAL_DIR)/mlflow.db
 	WALKERS_WORK_DIR=$(ORIGINAL_DIR)/work nice -n 19 $(PY) -m walkers.train -m ab=original hydra/launcher=joblib hydra.launcher.n_jobs=$(CORES) torch_threads=1 tracking.uri=sqlite:///$(ORIGINAL_DIR)/mlflow.db 'hydra.sweep.dir=$(ORIGINAL_DIR)/multirun/$${now:%Y-%m-%d_%H-%M-%S}' $(ARGS) $(CTRL_C_QUIET)
 
 compare: $(STAMP)  ## an A/B report from finished runs (ARGS="env=... algos=[...] ...")

@@ -12,7 +12,7 @@ Off-policy agents learn every step after their warm-up, on-policy ones when thei
 complete (REINFORCE: episodes; PPO: a rollout of steps): the agent decides inside ``update()``,
 the loop is the same. Every loop reads top to bottom inside :func:`progress_shown` (a progress
 bar; on Ctrl-C, or SIGTERM turned into one, a last checkpoint of every run before the interrupt
-propagates) and ends with :func:`finish` (each run's summary, with its throughput over the
+propagates) and ends with :func:`finish_runs` (each run's summary, with its throughput over the
 session).
 
 A stop lands between steps, never inside one: each step of walkers' own loops (act, env step,
@@ -58,7 +58,7 @@ def train_online(agent: Agent, env: gym.Env, book: RunBook) -> dict[str, float]:
                 stop = _after_step(book, losses, bar)
             if stop:
                 break
-    return finish([book], bar)[0]
+    return finish_runs([book], bar)[0]
 
 
 def online_step(agent: Agent, env: gym.Env, obs, losses: dict) -> tuple[np.ndarray, tuple | None]:
@@ -97,7 +97,7 @@ def train_vectorized(
                     stop = _after_step(book, losses, bar)
                     if stop:
                         break
-    return finish([book], bar)[0]
+    return finish_runs([book], bar)[0]
 
 
 def vectorized_step(agent: Agent, envs: gym.vector.VectorEnv, obs, losses: dict) -> VectorStep:
@@ -120,7 +120,7 @@ def train_offline(agent: Agent, book: RunBook) -> dict[str, float]:
                 stop = _after_step(book, losses, bar)
             if stop:
                 break
-    return finish([book], bar)[0]
+    return finish_runs([book], bar)[0]
 
 
 def train_population(
@@ -137,7 +137,7 @@ def train_population(
             with shielded():
                 step, losses = lockstep.step()
                 _population_books(books, step, losses, bar)
-    return finish(books, bar, aggregate="perf/population_sps")
+    return finish_runs(books, bar, aggregate="perf/population_sps")
 
 
 class Lockstep:
@@ -232,7 +232,7 @@ def train_sb3(agent: SB3Twin, book: RunBook) -> dict[str, float]:
             agent.model.learn(
                 s.total_steps - p.step, callback=BookKeeping(bar), reset_num_timesteps=False
             )
-    return finish([book], bar)[0]
+    return finish_runs([book], bar)[0]
 
 
 def _after_step(book: RunBook, losses: dict[str, torch.Tensor], bar: tqdm) -> bool:
@@ -327,7 +327,7 @@ def progress_shown(books: Sequence[RunBook]) -> Iterator[ProgressBar]:
             bar.close()
 
 
-def finish(
+def finish_runs(
     books: Sequence[RunBook], bar: ProgressBar, aggregate: str | None = None
 ) -> list[dict[str, float]]:
     """Each run's ``final/*`` summary, with its throughput over this session (``rate_metric``);

@@ -88,6 +88,7 @@ COMPOSITION_CASES = [
     (["algo=foo"], ["algo='foo'", "reinforce, sac, td3"]),
     (["env=walker3d"], ["env='walker3d'", "walker2d"]),
     (["totl_steps=5"], ["totl_steps=5", "no key 'totl_steps'", "did you mean 'total_steps'?"]),
+    (["evn=hopper"], ["evn=hopper", "no key 'evn'", "did you mean 'env'?"]),
     (["algo.lrr=1e-3"], ["algo.lrr=1e-3", "no key 'algo.lrr'", "did you mean 'algo.lr'?"]),
     (["algo=td33"], ["algo='td33'", "did you mean 'td3'?", "reinforce, sac, td3"]),
     (["algo.momentum=0.9"], ["algo.momentum=0.9", "no key"]),

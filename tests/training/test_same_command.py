@@ -1,7 +1,7 @@
 """ "Killed? the same command resumes" (README): a plain run's command, run again, continues the
 run it started (a Ctrl-C, a SIGTERM, a kill -9), trains nothing once that run FINISHED, and
 says which in one line; what identifies "the same command" is the composed config less what
-may change on resume (:func:`walkers.training.attempts.command_key`)."""
+may change on resume (:func:`walkers.training.command_plan.command_key`)."""
 
 from __future__ import annotations
 
@@ -25,7 +25,7 @@ from tests.conftest import (
 from walkers.agents.fingerprint import CODE_DIGEST_TAG
 from walkers.train import train
 from walkers.training import checkpoints
-from walkers.training.attempts import command_key
+from walkers.training.command_plan import command_key
 from walkers.training.provenance import COMMAND_KEY_TAG
 
 #: A run that takes long enough to be stopped after its first checkpoint.

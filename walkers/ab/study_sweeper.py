@@ -7,7 +7,7 @@ joblib, Ray, submitit). A job is keyed by study, arm, env and seed (``job_key``)
 
 - a rerun of the same command skips FINISHED jobs, and each job it launches again continues its
   earlier run (RUNNING with its process gone, KILLED, or FAILED with a checkpoint) from the last
-  checkpoint (:func:`walkers.training.attempts.continue_earlier_attempt`);
+  checkpoint (:mod:`walkers.training.command_plan`);
 - no seed runs twice or counts twice: one FINISHED run per key.
 
 On a GPU (``hydra.sweeper.seeds_as_population``: ``auto``, the default, where the jobs' device

@@ -38,7 +38,7 @@ from walkers.training.checkpoints import Checkpoint
 from walkers.training.evaluation import Evaluation, greedy_evaluation
 from walkers.training.greedy_episodes import record_episodes
 from walkers.training.provenance import DIVERGED_TAG
-from walkers.training.run import ENV_STEP_AXIS, Axis, TrainingRun
+from walkers.training.run import Axis, TrainingRun
 from walkers.training.settings import RunSettings
 from walkers.training.video import write_gif
 
@@ -68,44 +68,43 @@ class Progress:
 
 
 class RunBook:
-    """The bookkeeping of one run (see the module docstring): its ``settings`` say the budget,
-    the schedules of evaluations, checkpoints, logs and videos, the seed and the divergence
-    patience; ``threshold`` is the env's return for ``final/steps_to_threshold``; ``env_member``:
-    a population member's place in the vector env ``env`` of all members' training envs;
-    ``on_evaluation``: a sweep trial's pruner, ``(step, eval mean) -> stop?``; ``config``: the
-    run's shareable config, kept in every checkpoint; ``start``: the checkpoint a resumed run
-    goes on from (:meth:`continue_from`)."""
+    """The bookkeeping of one run (see the module docstring). ``run`` is what the run is: its
+    MLflow run and folder, its config (whose settings say the budget, the schedules of
+    evaluations, checkpoints, logs and videos, the seed and the divergence patience, and whose
+    env's threshold counts ``final/steps_to_threshold``) and what its steps count. ``env`` is the
+    training env, a population member's the vector env of all members', its env ``env_member``;
+    ``evaluation`` plays the evaluation (greedy episodes unless told), ``summarize`` adds to the
+    ``final/*`` summary; ``on_evaluation`` is a sweep trial's pruner, ``(step, eval mean) ->
+    stop?``; ``start`` the checkpoint a continued run goes on from (:meth:`continue_from`)."""
 
     def __init__(
         self,
         agent: Agent,
+        run: TrainingRun,
         env: gym.Env | None,
         eval_env: gym.Env,
-        run: TrainingRun,
-        settings: RunSettings,
-        threshold: float,
-        config: dict | None = None,
         video_env: gym.Env | None = None,
-        on_evaluation: Callable[[int, float], bool] | None = None,
-        evaluation: Evaluation = greedy_evaluation,
-        axis: Axis = ENV_STEP_AXIS,
-        summarize: Callable[[dict[str, float]], dict[str, float]] | None = None,
         env_member: int | None = None,
+        evaluation: Evaluation = greedy_evaluation,
+        summarize: Callable[[dict[str, float]], dict[str, float]] | None = None,
+        on_evaluation: Callable[[int, float], bool] | None = None,
         start: Checkpoint | None = None,
     ):
-        self.agent, self.env, self.eval_env, self.video_env = agent, env, eval_env, video_env
-        # a population member's env is env_member of the population's vector env ``env``
-        self.env_member = env_member
-        self.run, self.settings, self.threshold, self.axis = run, settings, threshold, axis
-        self.config = config or {}
-        self.on_evaluation = on_evaluation
+        self.agent, self.run = agent, run
+        self.env, self.eval_env, self.video_env, self.env_member = (
+            env,
+            eval_env,
+            video_env,
+            env_member,
+        )
+        self.settings = settings = RunSettings.of(run.config)
+        self.evaluation, self.on_evaluation = evaluation, on_evaluation
+        self.summarize = summarize or (lambda summary: summary)  # extra final/* metrics
         # the steps after_step may have work at are multiples of these (or the last)
         periods = (settings.log_every, settings.eval_every, settings.checkpoint_every)
         self._periods = sorted(
             {*periods, *([settings.video_every] if settings.video_every else [])}
         )
-        self.evaluation = evaluation
-        self.summarize = summarize or (lambda summary: summary)  # extra final/* metrics
         self.stopped_early = False
         self.last_checkpoint_step: int | None = None
         self.progress = Progress()
@@ -115,6 +114,10 @@ class RunBook:
         if start is not None:
             self.continue_from(start)
         self.start_clock(time.perf_counter())
+
+    @property
+    def axis(self) -> Axis:
+        return self.run.axis
 
     # --- checkpoints --------------------------------------------------------------------------
     def save_checkpoint(self, name: str = "last.pt") -> None:
@@ -129,7 +132,7 @@ class RunBook:
         checkpoint = Checkpoint(
             trainer=dataclasses.asdict(self.progress),
             agent=self.agent.state_dict(with_buffer=last and with_buffer),
-            config=self.config,
+            config=self.run.config,
             env_rng=env_rng_state(self.env, self.env_member) if self.env is not None else None,
             **torch_rng_state(),
         )
@@ -308,7 +311,8 @@ class RunBook:
     def finish(self, rate: float | None, extra: dict[str, float] | None = None) -> dict:
         """Log the ``final/*`` summary (with ``rate`` and ``extra``), write last.pt, flush."""
         p = self.progress
-        summary = self.summarize(run_summary(p.eval_steps, p.eval_means, self.threshold))
+        threshold = self.run.config["env"]["threshold"]
+        summary = self.summarize(run_summary(p.eval_steps, p.eval_means, threshold))
         summary |= (extra or {}) | {"final/cpu_hours": self.cpu_hours()}
         if rate is not None:
             summary[self.axis.rate_metric] = rate

@@ -31,7 +31,7 @@ WORKER_TAG = "walkers.worker"
 POPULATION_TAG = "walkers.population"
 MEMBER_TAG = "walkers.population_member"
 #: Tag: what identifies a plain command's runs across attempts (the same command continues
-#: them: :func:`walkers.training.attempts.command_key`).
+#: them: :func:`walkers.training.command_plan.command_key`).
 COMMAND_KEY_TAG = "walkers.command_key"
 #: Tag of an earlier attempt's run that a job run again could not continue (it is FAILED).
 SUPERSEDED_TAG = "walkers.superseded"

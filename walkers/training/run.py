@@ -1,12 +1,13 @@
 """A training run from opening to its final status: its MLflow run and its local folder.
 
-:class:`TrainingRun` is the one object the training command, the loops' book and resume talk to
-about a run; what a training run says to MLflow goes through it (the session only connects the
-client; ``make lint`` keeps the book and the loops from importing :mod:`walkers.tracking`). It
-opens the run (new, or the resumed one reopened), holds its lock while it trains, logs and
-uploads, and :func:`ending_and_saying_how` gives it its final status on every way out; it
-finds a run's last checkpoint; which run continues is :mod:`walkers.training.attempts`' and
-:mod:`walkers.training.resume`'s. :class:`RunFolder` is the one place the local layout is spelled::
+:class:`TrainingRun` is what a run is to the training command, the loops' book and the plan: its
+MLflow run, its folder, its config (in one form: resolved, without secrets) and what its steps
+count. What a training run says to MLflow goes through it (the session only connects the client;
+``make lint`` keeps the book and the loops from importing :mod:`walkers.tracking`). It opens the
+run (new, or a continued one reopened), holds its lock while it trains, logs and uploads, and
+:func:`ending_and_saying_how` gives it its final status on every way out; it finds a run's last
+checkpoint; which run continues is :mod:`walkers.training.command_plan`'s. :class:`RunFolder` is
+the one place the local layout is spelled::
 
     <work_dir>/runs/<run id>/
         config.yaml                  the resolved config (secrets redacted), also logged
@@ -58,22 +59,21 @@ from walkers.training.provenance import (
 log = logging.getLogger("walkers")
 
 
-def _resumed_tags(client, cfg: DictConfig) -> dict[str, str]:
-    """What a resumed run's tags must now say: the budget it goes on to where that is not the
+def _resumed_tags(client, run_id: str, total_steps: int) -> dict[str, str]:
+    """What a continued run's tags must now say: the budget it goes on to where that is not the
     one it started with (its param cannot change), and its code digests where other update code
     trained it before (said in one line: it can no longer stand as a reference arm)."""
-    run = client.get_run(cfg.resume)
-    budget = str(cfg.total_steps)
+    run = client.get_run(run_id)
     tags = {}
-    if total_steps_of(run) != budget:
-        tags[BUDGET_TAG] = budget
+    if total_steps_of(run) != str(total_steps):
+        tags[BUDGET_TAG] = str(total_steps)
     code = resumed_code_tags(run.data.tags)
     for digests in code.values():
         log.warning(
             "run %s continues under other update code than trained it so far (walkers.agents "
             "or walkers.data changed: code digests %s): its results stand, but it cannot serve "
             "as a reference arm (no update fingerprint)",
-            cfg.resume,
+            run_id,
             digests.replace("+", " then "),
         )
     return tags | code
@@ -130,36 +130,49 @@ class RunFolder:
 
 
 class TrainingRun:
-    """One training run: its MLflow run (a :class:`~walkers.tracking.tracker.Tracker`) and its
-    folder."""
+    """One training run: its MLflow run (a :class:`~walkers.tracking.tracker.Tracker`), its
+    folder, and what it is: its ``config`` (resolved and shareable: no secrets; what its params,
+    ``config.yaml`` and checkpoints hold) and the ``axis`` its steps count."""
 
-    def __init__(self, tracker: Tracker, folder: RunFolder, lock=None):
+    def __init__(
+        self, tracker: Tracker, folder: RunFolder, config: dict | None = None, axis=None, lock=None
+    ):
         self.tracker, self.folder = tracker, folder
         tracker.spool_dir = folder.root  # what MLflow never takes is kept with the run
+        self.config, self.axis = config or {}, axis or ENV_STEP_AXIS
         self._lock = lock  # the run's lock file, held while this process trains it
 
     # --- opening ------------------------------------------------------------------------------
     @classmethod
     def open(
-        cls, client, cfg: DictConfig, axis: Axis, data=None, extra_tags: dict | None = None
+        cls,
+        client,
+        cfg: DictConfig,
+        axis: Axis,
+        continues: str | None = None,
+        data=None,
+        extra_tags: dict | None = None,
     ) -> TrainingRun:
-        """The resumed run (``cfg.resume``) reopened, or a new one with the config as params and
-        tags; either way with its ``config.yaml`` written and logged.
+        """Run ``continues`` reopened, or a new one with the config as params and tags; either
+        way with its ``config.yaml`` written and logged.
 
         ``axis``: what the run's steps count; ``data``: an offline run's
         :class:`~walkers.training.run_dataset.RunDataset`; ``extra_tags``
         are set either way (a population member: its place in the population). If opening
-        fails, the run ends at once: a new run FAILED (KILLED if a signal stopped it); a resumed
-        run KILLED, as it was stopped before it could go on, so that it can still be continued
-        (a job run again after a store hiccup continues it).
+        fails, the run ends at once: a new run FAILED (KILLED if a signal stopped it); a
+        continued run KILLED, as it was stopped before it could go on, so that it can still be
+        continued (a job run again after a store hiccup continues it).
         """
         tags = (extra_tags or {}) | trial_tags(cfg)
+        config = shareable(cfg)
         lock = None
-        if cfg.resume:  # locked before it is reopened: a run another process trains is left be
-            lock = hold_lock(RunFolder.of(cfg.work_dir, cfg.resume))
+        if continues:  # locked before it is reopened: a run another process trains is left be
+            lock = hold_lock(RunFolder.of(cfg.work_dir, continues))
             try:
-                tags |= {WORKER_TAG: worker_name()} | _resumed_tags(client, cfg)
-                tracker = Tracker.reopen(client, cfg.resume, ".", resumed_training=True)
+                tags |= {WORKER_TAG: worker_name()} | _resumed_tags(
+                    client, continues, cfg.total_steps
+                )
+                tracker = Tracker.reopen(client, continues, ".", resumed_training=True)
             except BaseException:
                 lock.close()
                 raise
@@ -168,29 +181,29 @@ class TrainingRun:
             tracker = Tracker.start(
                 client, cfg.tracking.experiment, run_name(cfg), tags=tags, spool_dir="."
             )
-        run = cls(tracker, RunFolder.of(cfg.work_dir, tracker.run_id), lock)
+        run = cls(tracker, RunFolder.of(cfg.work_dir, tracker.run_id), config, axis, lock)
         try:
             if lock is None:
                 run._lock = hold_lock(run.folder)
-            if cfg.resume:
+            if continues:
                 tracker.set_tags(tags)
             else:
-                tracker.log_params(flatten(shareable(cfg)))
+                tracker.log_params(flatten(config))
                 if data is not None:
                     tracker.log_params(data.params)
-            run._write_config(cfg)
+            run._write_config()
         except BaseException as e:  # a signal here ends a new run KILLED too: its job reruns
-            run.end(KILLED if cfg.resume else status_after(e))
+            run.end(KILLED if continues else status_after(e))
             raise
         if cfg.tracking.get("system_metrics"):
             tracker.start_system_metrics(cfg.tracking.system_metrics_every)
         log.info("MLflow run %s: follow it live with `make ui`, then %s", run.run_id, run.url)
         return run
 
-    def _write_config(self, cfg: DictConfig) -> None:
+    def _write_config(self) -> None:
         path = self.folder.config_yaml
         path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(OmegaConf.to_yaml(shareable(cfg)))
+        path.write_text(OmegaConf.to_yaml(self.config))
         self.tracker.log_artifact(path)
 
     @classmethod

@@ -43,14 +43,13 @@ from walkers.training.loops import (
     train_sb3,
     train_vectorized,
 )
-from walkers.training.provenance import MEMBER_TAG, POPULATION_TAG, shareable
+from walkers.training.provenance import MEMBER_TAG, POPULATION_TAG
 from walkers.training.run import (
     ENV_STEP_AXIS,
     GRADIENT_STEP_AXIS,
     TrainingRun,
     ending_and_saying_how,
 )
-from walkers.training.settings import RunSettings
 
 log = logging.getLogger("walkers")
 
@@ -126,7 +125,7 @@ def build(
 def _build_single(
     work: Plan, closing: ExitStack, tags: dict, reporter: EvaluationReporter | None
 ) -> Session:
-    cfg, data, start = work.cfg, work.data, work.starts[0]
+    cfg, data = work.cfg, work.data
     eval_env = _closed_by(closing, make_env(cfg.env, shaping=False))
     agent = build_agent(
         cfg, env_spaces(eval_env), **({"dataset": data.dataset} if data is not None else {})
@@ -149,8 +148,9 @@ def _build_single(
     closing.enter_context(
         ending_and_saying_how(runs)
     )  # from here on every run opened ends with a status
-    tags = tags if start is not None else tags | work.new_run_tags
-    runs.append(TrainingRun.open(work.client, cfg, axis, data, extra_tags=tags))
+    continues = work.continues[0]
+    tags = tags if continues else tags | work.new_run_tags
+    runs.append(TrainingRun.open(work.client, cfg, axis, continues, data, extra_tags=tags))
     options = {}
     if data is not None:
         normalized = data.references.normalized
@@ -158,9 +158,9 @@ def _build_single(
         options["summarize"] = with_normalized_score(normalized)
     if reporter is not None:  # e.g. a job of an Optuna study: its pruner
         options["on_evaluation"] = reporter(cfg)
-    book = _book(cfg, runs[0], agent, env, eval_env, axis, video_env, start=start, **options)
-    if start is not None:
-        log.info("resuming run %s at step %d", runs[0].run_id, book.progress.step)
+    book = RunBook(agent, runs[0], env, eval_env, video_env, start=work.starts[0], **options)
+    if continues:
+        log.info("resuming run %s at step %d", continues, book.progress.step)
     return Session(agent, env, [book], population=False)
 
 
@@ -179,24 +179,25 @@ def _build_population(work: Plan, closing: ExitStack, tags: dict) -> Session:
     )
     runs = []
     closing.enter_context(ending_and_saying_how(runs, population=True))
-    for i, member in enumerate(work.members):
+    for i, (member, continues) in enumerate(zip(work.members, work.continues, strict=True)):
         place = {POPULATION_TAG: str(k), MEMBER_TAG: str(i)}
-        new = {} if work.starts[i] is not None else work.new_run_tags
+        new = {} if continues else work.new_run_tags
         runs.append(
-            TrainingRun.open(work.client, member, ENV_STEP_AXIS, extra_tags=tags | place | new)
+            TrainingRun.open(
+                work.client, member, ENV_STEP_AXIS, continues, extra_tags=tags | place | new
+            )
         )
     books = [
-        _book(
-            member,
-            run,
+        RunBook(
             agent.member_policy(i),
+            run,
             envs,
             eval_envs[i],
-            evaluation=evaluation.of_member(i),
             env_member=i,
+            evaluation=evaluation.of_member(i),
             start=start,
         )
-        for i, (member, run, start) in enumerate(zip(work.members, runs, work.starts, strict=True))
+        for i, (run, start) in enumerate(zip(runs, work.starts, strict=True))
     ]
     if work.resumed:
         log.info("resuming %d runs together at step %d", k, books[0].progress.step)
@@ -206,22 +207,6 @@ def _build_population(work: Plan, closing: ExitStack, tags: dict) -> Session:
 def _closed_by(closing: ExitStack, env):
     closing.callback(env.close)
     return env
-
-
-def _book(cfg: DictConfig, run, agent, env, eval_env, axis=ENV_STEP_AXIS, video_env=None, **kw):
-    """The run's :class:`RunBook`, with its config in every checkpoint."""
-    return RunBook(
-        agent,
-        env,
-        eval_env,
-        run,
-        RunSettings.of(cfg),
-        cfg.env.threshold,
-        config=shareable(cfg),
-        video_env=video_env,
-        axis=axis,
-        **kw,
-    )
 
 
 def _workers(cfg: DictConfig, num_envs: int) -> bool:

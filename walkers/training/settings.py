@@ -13,7 +13,7 @@ follows from it:
   read from disk when the help prints), examples, and last the keys walkers and its sweepers set;
 - the check of a composed config (:data:`RULES`, run by ``walkers.training.validate``): a
   one-line error naming the key, the bad value and what is allowed;
-- what a run's book reads (:meth:`RunSettings.of`: the settings a composed config gives).
+- what a run's book reads (:meth:`RunSettings.of`: the settings a run's config gives).
 
 ``allowed=None``: not checked here, as before this declaration existed: ``dataset`` and
 ``resume`` are checked where they are used, ``seeds_per_trial`` by the sweeper; ``save_buffer``,
@@ -159,15 +159,12 @@ class RunSettings:
     )
 
     @classmethod
-    def of(cls, cfg: DictConfig) -> RunSettings:
-        """The settings a composed config gives (resolved; a key it lacks: the default)."""
-        return cls(**{f.name: _resolved(cfg, f.name) for f in fields(cls) if f.name in cfg})
-
-
-def _resolved(cfg: DictConfig, key: str):
-    """``cfg``'s value at ``key`` as plain Python (a list or dict, not a config node)."""
-    value = OmegaConf.select(cfg, key)
-    return OmegaConf.to_container(value, resolve=True) if OmegaConf.is_config(value) else value
+    def of(cls, config: DictConfig | dict) -> RunSettings:
+        """The settings a config gives: a composed one, or a run's resolved ``config`` (a key it
+        lacks: the default)."""
+        if OmegaConf.is_config(config):
+            config = OmegaConf.to_container(config, resolve=True)
+        return cls(**{f.name: config[f.name] for f in fields(cls) if f.name in config})
 
 
 #: The checked run settings as ``(key, allowed)``, in declaration order (see the module doc).

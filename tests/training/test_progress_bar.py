@@ -8,29 +8,29 @@ import re
 from tqdm import tqdm
 
 from tests.conftest import run_cli
-from walkers.training.loops import PhaseEta
+from walkers.training.loops import ProgressBar
 
 
 def test_the_time_left_counts_the_learning_phase_at_its_own_rate():
-    eta = PhaseEta(total=1_000_000, learning_from=25_000)
-    assert eta.fields(0, now=0.0) == {"eta": "after the warm-up to step 25,000"}
-    assert eta.fields(24_900, now=59.0) == {"eta": "after the warm-up to step 25,000"}
-    assert eta.fields(25_000, now=60.0) == {"eta": "measuring the learning phase"}
+    bar = ProgressBar(total=1_000_000, learning_from=25_000, disable=True)
+    assert bar.eta(0, now=0.0) == {"eta": "after the warm-up to step 25,000"}
+    assert bar.eta(24_900, now=59.0) == {"eta": "after the warm-up to step 25,000"}
+    assert bar.eta(25_000, now=60.0) == {"eta": "measuring the learning phase"}
     # 1,000 learning steps in 10 s: 100 steps/s for the 974,000 left (the warm-up's 400/s unused)
-    assert eta.fields(26_000, now=70.0) == {"eta": tqdm.format_interval(9_740)}
-    assert eta.fields(26_000, now=70.0)["eta"] == "2:42:20"
-    assert eta.fields(1_000_000, now=1e4) == {}
+    assert bar.eta(26_000, now=70.0) == {"eta": tqdm.format_interval(9_740)}
+    assert bar.eta(26_000, now=70.0)["eta"] == "2:42:20"
+    assert bar.eta(1_000_000, now=1e4) == {}
 
 
 def test_a_run_that_resumes_past_its_warm_up_measures_from_its_first_step():
-    eta = PhaseEta(total=10_000, learning_from=1_000)
-    assert eta.fields(5_000, now=100.0) == {"eta": "measuring the learning phase"}
-    assert eta.fields(6_000, now=110.0) == {"eta": "00:40"}  # 4,000 left at 100 steps/s
+    bar = ProgressBar(total=10_000, learning_from=1_000, disable=True)
+    assert bar.eta(5_000, now=100.0) == {"eta": "measuring the learning phase"}
+    assert bar.eta(6_000, now=110.0) == {"eta": "00:40"}  # 4,000 left at 100 steps/s
 
 
 def test_an_on_policy_run_has_no_warm_up(tmp_path):
-    eta = PhaseEta(total=2_048, learning_from=0)
-    assert eta.fields(0, now=0.0) == {"eta": "measuring the learning phase"}
+    bar = ProgressBar(total=2_048, learning_from=0, disable=True)
+    assert bar.eta(0, now=0.0) == {"eta": "measuring the learning phase"}
 
 
 def test_a_run_s_bar_opens_saying_when_learning_starts(store):

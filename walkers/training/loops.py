@@ -245,32 +245,27 @@ def _progress_bar(book: RunBook, bar: tqdm) -> None:
     """After an evaluation the bar shows its return; every 100 steps it moves, with its ETA."""
     step = book.progress.step
     if step % 100 == 0 or step in book.progress.eval_steps[-1:]:
-        bar.set_postfix(bar.eta.fields(step) | _latest_evaluation(book), refresh=False)
+        bar.set_postfix(bar.eta(step) | _latest_evaluation(book), refresh=False)
         bar.update(step - bar.n)
 
 
 class ProgressBar(tqdm):
-    """tqdm with the time left as :class:`PhaseEta` counts it, and where and when this session
-    started (its throughput's origin)."""
+    """tqdm with where and when this session started (its throughput's origin) and its own time
+    left, each phase at its own rate. An off-policy run's first steps (random actions, no
+    updates: ``agent.update_after``, here ``learning_from``) run many times faster than its
+    learning phase, so a rate over both (tqdm's own ETA) said minutes for a run of hours. During
+    the warm-up the bar says when learning starts; from then on, the time left is the steps left
+    at the rate measured since learning started in this session (evaluations included)."""
 
-    def __init__(self, eta: PhaseEta, initial: int, **kwargs):
-        self.eta, self.first_step = eta, initial
-        super().__init__(initial=initial, **kwargs)
+    def __init__(self, total: int, learning_from: int, initial: int = 0, postfix=None, **kwargs):
+        self.total, self.learning_from, self.first_step = total, learning_from, initial
+        self.mark: tuple[int, float] | None = None  # this session's first learning step, time
+        postfix = self.eta(initial) | (postfix or {})
+        super().__init__(total=total, initial=initial, postfix=postfix, **kwargs)
         self.start = time.perf_counter()
 
-
-class PhaseEta:
-    """The bar's time left, each phase at its own rate. An off-policy run's first steps (random
-    actions, no updates: ``agent.update_after``) run many times faster than its learning phase,
-    so a rate over both (tqdm's own ETA) said minutes for a run of hours. During the warm-up the
-    bar says when learning starts; from then on, the time left is the steps left at the rate
-    measured since learning started in this session (evaluations included)."""
-
-    def __init__(self, total: int, learning_from: int):
-        self.total, self.learning_from = total, learning_from
-        self.mark: tuple[int, float] | None = None  # this session's first learning step, time
-
-    def fields(self, step: int, now: float | None = None) -> dict[str, str]:
+    def eta(self, step: int, now: float | None = None) -> dict[str, str]:
+        """The bar's ``eta`` field at ``step`` (``now``: a ``time.perf_counter()``)."""
         now = time.perf_counter() if now is None else now
         if step >= self.total:
             return {}
@@ -301,12 +296,11 @@ def progress_shown(books: Sequence[RunBook]) -> Iterator[ProgressBar]:
     and nothing has to reconcile the two."""
     first = books[0]
     s, p = first.settings, first.progress
-    eta = PhaseEta(s.total_steps, getattr(first.agent, "update_after", 0))
     bar = ProgressBar(
-        eta,
-        total=s.total_steps,
+        s.total_steps,
+        getattr(first.agent, "update_after", 0),
         initial=p.step,
-        postfix=eta.fields(p.step) | _latest_evaluation(first),
+        postfix=_latest_evaluation(first),
         unit=first.axis.unit,
         disable=not s.progress,
         dynamic_ncols=True,

@@ -4,7 +4,7 @@
             to continue and from which checkpoints, or nothing: they finished), the config
             checked once
     build   the data, the envs, the agent, the MLflow run(s), their books (:func:`build`)
-    run     the loop (walkers.training.loops), then every run ends with its status
+    train   the loop that fits (walkers.training.loops), then every run ends with its status
 
     single run:   envs + agent -> TrainingRun.open -> RunBook -> train_online | _offline | _sb3
                   (an agent declaring several_envs, num_envs > 1: a vector env -> train_vectorized)
@@ -20,7 +20,6 @@ import logging
 import math
 from collections.abc import Callable
 from contextlib import ExitStack
-from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -74,8 +73,8 @@ def run_training(
     if work.cfg.torch_threads:
         torch.set_num_threads(work.cfg.torch_threads)
     with ExitStack() as closing:
-        session = build(work, closing, tags or {}, reporter)
-        summaries = session.run()
+        agent, env, books = build(work, closing, tags or {}, reporter)
+        summaries = train(agent, env, books)
     values = [s.get(work.cfg.optimized_metric, math.nan) for s in summaries]
     if len(values) > 1:
         log.info("%s per member = %s", work.cfg.optimized_metric, values)
@@ -84,39 +83,28 @@ def run_training(
     return float(np.mean(values))
 
 
-@dataclass
-class Session:
-    """What :func:`build` made: the agent, its training env(s), one book per run; :meth:`run`
-    runs the loop that fits them."""
-
-    agent: object
-    env: object | None  # None: an offline run
-    books: list[RunBook]
-    population: bool
-
-    def run(self) -> list[dict[str, float]]:
-        agent, env, books = self.agent, self.env, self.books
-        if self.population:
-            return train_population(agent, env, books)
-        book = books[0]
-        if agent.offline:
-            summary = train_offline(agent, book)
-        elif agent.trains_itself:
-            summary = train_sb3(agent, book)
-        elif agent.several_envs and agent.num_envs > 1:
-            summary = train_vectorized(agent, env, book)
-        else:
-            summary = train_online(agent, env, book)
-        if book.stopped_early:
-            book.run.mark_pruned(book.progress.step)
-        return [summary]
+def train(agent, env, books: list[RunBook]) -> list[dict[str, float]]:
+    """Run the loop that fits the agent and its books (one per run); each run's summary."""
+    if len(books) > 1:
+        return train_population(agent, env, books)
+    book = books[0]
+    if agent.offline:
+        summary = train_offline(agent, book)
+    elif agent.trains_itself:
+        summary = train_sb3(agent, book)
+    elif agent.several_envs and agent.num_envs > 1:
+        summary = train_vectorized(agent, env, book)
+    else:
+        summary = train_online(agent, env, book)
+    if book.stopped_early:
+        book.run.mark_pruned(book.progress.step)
+    return [summary]
 
 
-def build(
-    work: Plan, closing: ExitStack, tags: dict, reporter: EvaluationReporter | None
-) -> Session:
-    """The envs (closed by ``closing``), the agent, the run(s) (ended by ``closing``, whatever
-    way the session ends) and their books, as ``work`` plans them."""
+def build(work: Plan, closing: ExitStack, tags: dict, reporter: EvaluationReporter | None) -> tuple:
+    """The agent, its training env(s) (closed by ``closing``; None: an offline run) and one book
+    per run (each run ended by ``closing``, whatever way the session ends), as ``work`` plans
+    them."""
     if work.cfg.population > 1:
         return _build_population(work, closing, tags)
     return _build_single(work, closing, tags, reporter)
@@ -124,7 +112,7 @@ def build(
 
 def _build_single(
     work: Plan, closing: ExitStack, tags: dict, reporter: EvaluationReporter | None
-) -> Session:
+) -> tuple:
     cfg, data = work.cfg, work.data
     eval_env = _closed_by(closing, make_env(cfg.env, shaping=False))
     agent = build_agent(
@@ -161,10 +149,10 @@ def _build_single(
     book = RunBook(agent, runs[0], env, eval_env, video_env, start=work.starts[0], **options)
     if continues:
         log.info("resuming run %s at step %d", continues, book.progress.step)
-    return Session(agent, env, [book], population=False)
+    return agent, env, [book]
 
 
-def _build_population(work: Plan, closing: ExitStack, tags: dict) -> Session:
+def _build_population(work: Plan, closing: ExitStack, tags: dict) -> tuple:
     """``population=K``: K members in one agent and one loop, one MLflow run per member."""
     cfg, k = work.cfg, work.cfg.population
     # member i's env is env i of one vector env
@@ -201,7 +189,7 @@ def _build_population(work: Plan, closing: ExitStack, tags: dict) -> Session:
     ]
     if work.resumed:
         log.info("resuming %d runs together at step %d", k, books[0].progress.step)
-    return Session(agent, envs, books, population=True)
+    return agent, envs, books
 
 
 def _closed_by(closing: ExitStack, env):

@@ -133,6 +133,9 @@ bench: $(STAMP)  ## the TD3 update vs a plain eager implementation
 bench-profile: $(STAMP)  ## where a TD3 learning step of walkers.train goes on one CPU thread
 	$(PY) benchmarks/profile_step.py $(ARGS)
 
+bench-path: $(STAMP)  ## the files and classes of walkers/ that one walkers.train passes through
+	$(PY) benchmarks/train_path.py $(ARGS)
+
 bench-population: $(STAMP)  ## a population's lockstep step per member, K = 1, 4, 16
 	$(PY) benchmarks/bench_population.py --split $(ARGS)
 
@@ -204,4 +207,4 @@ clean:  ## remove run outputs and caches; keeps .venv and optuna.db
 	rm -rf mlflow.db mlruns mlartifacts outputs multirun .walkers reports .pytest_cache .ruff_cache
 	find . -name __pycache__ -type d -prune -not -path './$(VENV)/*' -exec rm -rf {} +
 
-.PHONY: help install train ab ab-all study baseline baselines-gpu offline-gpu offline compare plan results docs dashboard bench-sequential ui-check test test-slow test-faults test-cluster chaos stack bench bench-profile bench-population bench-throughput bench-dt bench-learning bench-scale menus lint ui clean
+.PHONY: help install train ab ab-all study baseline baselines-gpu offline-gpu offline compare plan results docs dashboard bench-sequential ui-check test test-slow test-faults test-cluster chaos stack bench bench-profile bench-path bench-population bench-throughput bench-dt bench-learning bench-scale menus lint ui clean

@@ -10,10 +10,12 @@
                            plain command's (its :func:`command_key`: the composed config less
                            what may change on resume)
 
-Nothing else decides it: the plan's record (which runs continue, from which checkpoints) is what
-the session builds from. The config is checked once (:mod:`walkers.training.validate`): the
-command's before the store is asked anything, and where a run continues, its stored config with
-the overrides it takes. Each decision the user did not ask for by name is said in one line.
+Nothing else decides it, and the checkpoint a continued run goes on from is found here too
+(:func:`last_checkpoint`: the local copy with the replay buffer, or MLflow's). The plan's record
+(which runs continue, from which checkpoints) is what the session builds from. The config is
+checked once (:mod:`walkers.training.validate`): the command's before the store is asked
+anything, and where a run continues, its stored config with the overrides it takes. Each
+decision the user did not ask for by name is said in one line.
 """
 
 from __future__ import annotations
@@ -30,9 +32,16 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from walkers.agents.declarations.schemas import declared_since
-from walkers.errors import ConfigError
-from walkers.tracking.client import connect, flatten, require_run, search_runs, tags_equal
-from walkers.tracking.names import FINISHED, JOB_KEY_TAG, differing_keys
+from walkers.errors import CheckpointError, ConfigError
+from walkers.tracking.client import (
+    connect,
+    download_checkpoint,
+    flatten,
+    require_run,
+    search_runs,
+    tags_equal,
+)
+from walkers.tracking.names import FAILED, FINISHED, JOB_KEY_TAG, differing_keys
 from walkers.training.checkpoints import Checkpoint
 from walkers.training.provenance import (
     COMMAND_KEY_TAG,
@@ -45,7 +54,7 @@ from walkers.training.provenance import (
     job_key_of_seed,
     other_data,
 )
-from walkers.training.run import has_checkpoint, in_training_here, last_checkpoint, supersede
+from walkers.training.run import RunFolder, TrainingRun, in_training_here
 from walkers.training.run_dataset import RunDataset, loader
 from walkers.training.validate import check_command, is_offline, validate
 
@@ -429,3 +438,47 @@ def _check_same_data(client, cfg: DictConfig, data: RunDataset) -> None:
             f"the run learned from ({difference}): a rebuild under its name; restore that "
             "build, or train a new run"
         )
+
+
+# --- a run's checkpoints, as a continued run finds them ---------------------------------------
+def last_checkpoint(client, work_dir, run_id: str) -> Checkpoint:
+    """Run ``run_id``'s ``last.pt``: the local resume copy (replay buffer included) where this
+    machine trained the run and MLflow's is not newer, else the one uploaded to MLflow."""
+    folder = RunFolder.of(work_dir, run_id)
+    local = folder.resume_checkpoint
+    try:
+        uploaded = download_checkpoint(client, run_id, "last.pt", folder.download)
+    except CheckpointError:  # never uploaded (e.g. the store was down): the local copy will do
+        if not local.is_file():
+            raise
+        uploaded = None
+    uploaded = Checkpoint.read(uploaded) if uploaded is not None else None  # damaged: an error
+    if local.is_file():
+        whole = Checkpoint.read(local)
+        if uploaded is None or whole.step >= uploaded.step:
+            log.info("resuming from %s (with its replay buffer, if the agent has one)", local)
+            return whole
+        log.warning(
+            "%s is at step %d, MLflow's last.pt at step %d: resuming from MLflow's",
+            local,
+            whole.step,
+            uploaded.step,
+        )
+    return uploaded
+
+
+def has_checkpoint(client, work_dir, run_id: str) -> bool:
+    """Whether run ``run_id`` left a ``last.pt`` to continue from (uploaded, or kept here)."""
+    uploaded = [a.path for a in client.list_artifacts(run_id, "checkpoints")]
+    return (
+        "checkpoints/last.pt" in uploaded
+        or RunFolder.of(work_dir, run_id).resume_checkpoint.is_file()
+    )
+
+
+def supersede(client, work_dir, run_ids: list[str], why: str) -> None:
+    """End earlier runs a new attempt replaces: FAILED, tagged with ``why``."""
+    for run_id in run_ids:
+        run = TrainingRun.attach(client, work_dir, run_id)
+        run.set_tags({SUPERSEDED_TAG: why})
+        run.end(FAILED)

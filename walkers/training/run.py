@@ -5,9 +5,9 @@ MLflow run, its folder, its config (in one form: resolved, without secrets) and 
 count. What a training run says to MLflow goes through it (the session only connects the client;
 ``make lint`` keeps the book and the loops from importing :mod:`walkers.tracking`). It opens the
 run (new, or a continued one reopened), holds its lock while it trains, logs and uploads, and
-:func:`ending_and_saying_how` gives it its final status on every way out; it finds a run's last
-checkpoint; which run continues is :mod:`walkers.training.command_plan`'s. :class:`RunFolder` is
-the one place the local layout is spelled::
+:func:`ending_and_saying_how` gives it its final status on every way out. Which run continues,
+from which checkpoint, is :mod:`walkers.training.command_plan`'s. :class:`RunFolder` is the one
+place the local layout is spelled::
 
     <work_dir>/runs/<run id>/
         config.yaml                  the resolved config (secrets redacted), also logged
@@ -30,13 +30,12 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
-from walkers.errors import CheckpointError, ConfigError
+from walkers.errors import ConfigError
 from walkers.interrupts import RunsStopped
-from walkers.tracking.client import download_checkpoint, flatten
+from walkers.tracking.client import flatten
 from walkers.tracking.names import (
     BUDGET_TAG,
     ENV_STEPS,
-    FAILED,
     GRADIENT_STEPS,
     KILLED,
     PRUNED_TAG,
@@ -46,7 +45,6 @@ from walkers.tracking.names import (
 from walkers.tracking.tracker import Tracker, ending
 from walkers.training.checkpoints import Checkpoint
 from walkers.training.provenance import (
-    SUPERSEDED_TAG,
     WORKER_TAG,
     new_run_tags,
     resumed_code_tags,
@@ -265,32 +263,6 @@ class TrainingRun:
         return self.tracker.url
 
 
-def last_checkpoint(client, work_dir, run_id: str) -> Checkpoint:
-    """Run ``run_id``'s ``last.pt``: the local resume copy (replay buffer included) where this
-    machine trained the run and MLflow's is not newer, else the one uploaded to MLflow."""
-    folder = RunFolder.of(work_dir, run_id)
-    local = folder.resume_checkpoint
-    try:
-        uploaded = download_checkpoint(client, run_id, "last.pt", folder.download)
-    except CheckpointError:  # never uploaded (e.g. the store was down): the local copy will do
-        if not local.is_file():
-            raise
-        uploaded = None
-    uploaded = Checkpoint.read(uploaded) if uploaded is not None else None  # damaged: an error
-    if local.is_file():
-        whole = Checkpoint.read(local)
-        if uploaded is None or whole.step >= uploaded.step:
-            log.info("resuming from %s (with its replay buffer, if the agent has one)", local)
-            return whole
-        log.warning(
-            "%s is at step %d, MLflow's last.pt at step %d: resuming from MLflow's",
-            local,
-            whole.step,
-            uploaded.step,
-        )
-    return uploaded
-
-
 def hold_lock(folder: RunFolder):
     """The run's lock, held (the open file) until the run ends or the process dies, ``kill -9``
     included: :func:`in_training_here` asks it; a run another process holds is refused."""
@@ -319,23 +291,6 @@ def in_training_here(work_dir, run_id: str) -> bool:
             return True
         fcntl.flock(lock, fcntl.LOCK_UN)
     return False
-
-
-def has_checkpoint(client, work_dir, run_id: str) -> bool:
-    """Whether run ``run_id`` left a ``last.pt`` to continue from (uploaded, or kept here)."""
-    uploaded = [a.path for a in client.list_artifacts(run_id, "checkpoints")]
-    return (
-        "checkpoints/last.pt" in uploaded
-        or RunFolder.of(work_dir, run_id).resume_checkpoint.is_file()
-    )
-
-
-def supersede(client, work_dir, run_ids: list[str], why: str) -> None:
-    """End earlier runs a new attempt replaces: FAILED, tagged with ``why``."""
-    for run_id in run_ids:
-        run = TrainingRun.attach(client, work_dir, run_id)
-        run.set_tags({SUPERSEDED_TAG: why})
-        run.end(FAILED)
 
 
 @contextmanager

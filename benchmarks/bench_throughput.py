@@ -168,9 +168,18 @@ class SB3Loop:
             seed=0,
             device=DEVICE,
         )
+        _log_in_memory(self.model)
 
     def run(self, steps: int) -> None:
         self.model.learn(total_timesteps=steps, reset_num_timesteps=False)
+
+
+def _log_in_memory(model) -> None:
+    """SB3's logger in memory, as the twin's: left to itself, each ``learn`` makes a
+    ``$TMPDIR/SB3-<time>`` folder, and nobody asked for those."""
+    from stable_baselines3.common.logger import Logger
+
+    model.set_logger(Logger(folder=None, output_formats=[]))
 
 
 def walkers_crossq(width: int) -> WalkersLoop:
@@ -199,6 +208,7 @@ class SB3CrossQLoop(SB3Loop):
             seed=0,
             device=DEVICE,
         )
+        _log_in_memory(self.model)
 
 
 def walkers_ppo() -> WalkersLoop:
@@ -256,6 +266,7 @@ class SB3PPOLoop:
             seed=0,
             device=DEVICE,
         )
+        _log_in_memory(self.model)
 
     def run(self, steps: int) -> None:
         self.model.learn(total_timesteps=steps, reset_num_timesteps=False)

@@ -4,7 +4,7 @@
             to continue and from which checkpoints, or nothing: they finished), the config
             checked once
     build   the data, the envs, the agent, the MLflow run(s), their books (:func:`build`)
-    train   the loop that fits (walkers.training.loops), then every run ends with its status
+    run     the loop that fits (:func:`run_loop`), then every run ends with its status
 
     single run:   envs + agent -> TrainingRun.open -> RunBook -> train_online | _offline | _sb3
                   (an agent declaring several_envs, num_envs > 1: a vector env -> train_vectorized)
@@ -74,7 +74,7 @@ def run_training(
         torch.set_num_threads(work.cfg.torch_threads)
     with ExitStack() as closing:
         agent, env, books = build(work, closing, tags or {}, reporter)
-        summaries = train(agent, env, books)
+        summaries = run_loop(agent, env, books)
     values = [s.get(work.cfg.optimized_metric, math.nan) for s in summaries]
     if len(values) > 1:
         log.info("%s per member = %s", work.cfg.optimized_metric, values)
@@ -83,7 +83,7 @@ def run_training(
     return float(np.mean(values))
 
 
-def train(agent, env, books: list[RunBook]) -> list[dict[str, float]]:
+def run_loop(agent, env, books: list[RunBook]) -> list[dict[str, float]]:
     """Run the loop that fits the agent and its books (one per run); each run's summary."""
     if len(books) > 1:
         return train_population(agent, env, books)

@@ -24,7 +24,7 @@ from walkers.agents.factory import defaults_for
 from walkers.seeding import eval_start_seeds
 from walkers.train import train
 from walkers.training.envs import make_env, make_vector_env, step_vector_env
-from walkers.training.greedy_episodes import run_episodes, run_population_episodes
+from walkers.training.evaluation import run_episodes, run_population_episodes
 from walkers.training.loops import Lockstep, member_scalars
 
 PENDULUM = {"id": "Pendulum-v1", "max_episode_steps": 200}

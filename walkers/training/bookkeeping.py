@@ -35,8 +35,7 @@ from walkers.seeding import (
     training_env_seed,
 )
 from walkers.training.checkpoints import Checkpoint
-from walkers.training.evaluation import Evaluation, greedy_evaluation
-from walkers.training.greedy_episodes import record_episodes
+from walkers.training.evaluation import Evaluation, greedy_evaluation, record_episodes
 from walkers.training.provenance import DIVERGED_TAG
 from walkers.training.run import Axis, TrainingRun
 from walkers.training.settings import RunSettings

@@ -24,7 +24,7 @@ from walkers.seeding import eval_start_seeds, held_out_start_seeds
 from walkers.tracking.client import connect, download_checkpoint, require_run
 from walkers.training.checkpoints import Checkpoint, agent_from_checkpoint
 from walkers.training.envs import make_env
-from walkers.training.greedy_episodes import record_episodes
+from walkers.training.evaluation import record_episodes
 from walkers.training.run import RunFolder, TrainingRun
 from walkers.training.video import write_videos
 

@@ -1,5 +1,9 @@
 """How a run is evaluated: greedy episodes from the run's start states, or, for a
-return-conditioned agent (the Decision Transformer), greedy episodes per target return."""
+return-conditioned agent (the Decision Transformer), greedy episodes per target return.
+
+The greedy episodes themselves (:func:`run_episodes`, a population's together
+:func:`run_population_episodes`, with frames :func:`record_episodes`) are played here for the
+trainer, ``walkers.evaluate`` and ``walkers.collect`` alike."""
 
 from __future__ import annotations
 
@@ -11,12 +15,78 @@ import numpy as np
 
 from walkers.agents.base import Agent
 from walkers.metrics import normalized_score
-from walkers.training.greedy_episodes import run_episodes, run_population_episodes
 
 #: (agent, eval env, start seeds) -> (returns of the headline evaluation, extra metrics)
 Evaluation = Callable[[Agent, gym.Env, list[int]], tuple[np.ndarray, dict[str, float]]]
 #: A return -> its normalized score (0: a random policy, 100: the expert reference), or None.
 Normalize = Callable[[float], float | None]
+
+
+def run_episodes(
+    agent: Agent,
+    env: gym.Env,
+    start_seeds: Sequence[int],
+    on_frame: Callable[[int, np.ndarray], None] | None = None,
+    render_episodes: int | None = None,
+) -> np.ndarray:
+    """Returns of one greedy episode per start seed; episode ``i`` starts from
+    ``reset(seed=start_seeds[i])`` (a run's are :func:`walkers.seeding.eval_start_seeds`).
+
+    Seeding every episode makes a run's evaluations comparable across its checkpoints (the same
+    start states each time). ``on_frame(episode, frame)`` receives the rendered frames of the
+    first ``render_episodes`` episodes (all when None); the env needs ``render_mode="rgb_array"``.
+    """
+    returns = np.zeros(len(start_seeds))
+    for i, start_seed in enumerate(start_seeds):
+        obs, _ = env.reset(seed=int(start_seed))
+        agent.begin_episode()
+        render = on_frame is not None and (render_episodes is None or i < render_episodes)
+        done = False
+        while not done:
+            if render:
+                on_frame(i, env.render())
+            obs, reward, terminated, truncated, _ = env.step(agent.act(obs, explore=False))
+            agent.record_reward(float(reward))
+            returns[i] += reward
+            done = terminated or truncated
+    return returns
+
+
+def run_population_episodes(
+    population, envs: Sequence[gym.Env], start_seeds: Sequence[Sequence[int]]
+) -> np.ndarray:
+    """``(K, episodes)`` returns of a population's K members' greedy episodes, member k's
+    episode j from ``envs[k].reset(seed=start_seeds[k][j])``, as :func:`run_episodes` plays
+    them one member at a time; here the K members' j-th episodes play together, one batched
+    greedy forward of all members a step (``act_population``: the forward their training acts
+    through), a member whose episode is over waiting for the others."""
+    k, episodes = len(envs), len(start_seeds[0])
+    returns = np.zeros((k, episodes))
+    for j in range(episodes):
+        starts = zip(envs, start_seeds, strict=True)
+        obs = np.stack([env.reset(seed=int(seeds[j]))[0] for env, seeds in starts])
+        playing = list(range(k))
+        while playing:
+            actions = population.act_population(obs, explore=False)
+            still = []
+            for i in playing:
+                obs[i], reward, terminated, truncated, _ = envs[i].step(actions[i])
+                returns[i, j] += reward
+                if not (terminated or truncated):
+                    still.append(i)
+            playing = still
+    return returns
+
+
+def record_episodes(
+    agent: Agent, env: gym.Env, start_seeds: Sequence[int], render_episodes: int = 1
+) -> tuple[np.ndarray, list[np.ndarray], float]:
+    """:func:`run_episodes` keeping the first ``render_episodes``: (returns, frames, fps)."""
+    frames: list[np.ndarray] = []
+    returns = run_episodes(
+        agent, env, start_seeds, lambda _, frame: frames.append(frame), render_episodes
+    )
+    return returns, frames, env.metadata.get("render_fps") or 30
 
 
 @dataclass(frozen=True)
@@ -60,7 +130,7 @@ def greedy_evaluation(agent: Agent, env: gym.Env, start_seeds: list[int]):
 
 class PopulationEvaluation:
     """A population's evaluations, all K members' greedy episodes played together
-    (:func:`~walkers.training.greedy_episodes.run_population_episodes`), each member's book
+    (:func:`run_population_episodes`), each member's book
     reading its own: :meth:`of_member` is member i's :data:`Evaluation`. The first book to ask
     at a step plays them; the others read what it played (the population's ``steps`` count says
     which step that was)."""

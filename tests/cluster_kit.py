@@ -35,6 +35,7 @@ import psutil
 from mlflow.tracking import MlflowClient
 from optuna.trial import TrialState
 
+from tests.conftest import default_sigint
 from walkers.tracking.servers import MlflowServer, start_mlflow_server, start_postgres
 from walkers.tuning.studies import STORAGE_ENV
 
@@ -307,10 +308,6 @@ def broken_promises(
     return broken
 
 
-def _default_sigint() -> None:
-    signal.signal(signal.SIGINT, signal.SIG_DFL)
-
-
 def _env(**extra: str) -> dict[str, str]:
     env = {**os.environ, "PYTHONUNBUFFERED": "1", **extra}
     env.pop("MLFLOW_TRACKING_URI", None)
@@ -337,10 +334,7 @@ class Sweep:
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT,
             text=True,
-            # Ctrl-C works as in a terminal even where this runs in the background: a shell
-            # without job control starts background commands with SIGINT ignored, and the
-            # ignore would be inherited
-            preexec_fn=_default_sigint,
+            preexec_fn=default_sigint,  # Ctrl-C as in a terminal
         )
         return self
 

@@ -134,6 +134,14 @@ def run_cli(
     )
 
 
+def default_sigint() -> None:
+    """``preexec_fn`` for a child that is to get Ctrl-C as in a terminal, even where the tests run
+    in the background: a shell without job control starts background commands with SIGINT
+    ignored, the ignore is inherited, and a make started so keeps it (it ends 0, not by the
+    signal)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def spawn_cli(
     args: list[str], cwd: Path, merge_output: bool = False, new_session: bool = False
 ) -> subprocess.Popen:

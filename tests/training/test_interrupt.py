@@ -11,6 +11,7 @@ import pytest
 
 from tests.conftest import (
     all_runs,
+    default_sigint,
     interrupt_group_once_checkpointed,
     run_cli,
     signal_once_checkpointed,
@@ -141,6 +142,7 @@ def test_ctrl_c_under_make_train_ends_on_walkers_line_without_make_s_error(store
             stderr=subprocess.PIPE,
             text=True,
             env={k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"},
+            preexec_fn=default_sigint,
             **popen,
         )  # fmt: skip
 

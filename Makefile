@@ -20,8 +20,9 @@ BASELINE_ENVS ?= walker2d,hopper,half_cheetah
 BASELINE_SEEDS ?= 0,1,2
 BASELINE_STEPS ?= 1000000
 BASELINE_STORE ?= sqlite:///.walkers/baselines.db
-# make study-original: a study of hours, kept outside the work tree so that a new checkout continues it
-ORIGINAL_DIR ?= $(HOME)/.walkers/original
+# make study-original, study-bipedal: studies of hours, each in STUDIES_DIR/<study> (its store,
+# checkpoints and replay buffers), outside the work tree so that a new checkout continues them
+STUDIES_DIR ?= $(HOME)/.walkers
 CORES := $(shell nproc)
 
 help:  ## list the make targets and the Makefile's options
@@ -32,7 +33,7 @@ help:  ## list the make targets and the Makefile's options
 		'Options, as make TARGET VAR=value: ARGS="..." adds arguments (make train ARGS="seed=3"),' \
 		'PYTHON is the Python of a new .venv (make install PYTHON=python3.12), TORCH_INDEX where its' \
 		'torch comes from (CPU build: https://download.pytorch.org/whl/cpu), MLFLOW_PORT (ui, stack),' \
-		"BENCH_*, BASELINE_*, ORIGINAL_DIR, NEWEST_PYTHON (their targets'): docs/make-targets.md"
+		"BENCH_*, BASELINE_*, STUDIES_DIR, NEWEST_PYTHON (their targets'): docs/make-targets.md"
 
 # Quiet but for a line before and after: pip's -qq also silences the build backend's notes on
 # editable installs. TORCH_INDEX: where torch comes from first (PyTorch's own index for the CPU
@@ -78,12 +79,22 @@ study: $(STAMP)  ## an A/B study in rounds to its verdict in minutes; rerun to c
 baseline: $(STAMP)  ## one algorithm's 1M-step baseline (3 envs x 3 seeds); rerun to continue
 	$(PY) -m walkers.train -m algo=$(BASELINE_ALGO) 'env=$(BASELINE_ENVS)' 'seed=$(BASELINE_SEEDS)' total_steps=$(BASELINE_STEPS) hydra/launcher=joblib progress=false 'job_key="baseline/$(BASELINE_ALGO)/$${env.id}/{seed}"' 'tracking.run_name="baseline-$(BASELINE_ALGO)-$${env.id}-s{seed}"' tracking.experiment=baseline_$(BASELINE_ALGO) tracking.uri=$(BASELINE_STORE) $(ARGS) $(CTRL_C_QUIET)
 
+# A study at its full budget on this machine, in the background at the lowest priority (one job
+# a core, one torch thread a job): $(call background_study,NAME). The same command continues it.
+background_study = WALKERS_WORK_DIR=$(STUDIES_DIR)/$(1)/work nice -n 19 $(PY) -m walkers.train -m ab=$(1) \
+	hydra.launcher.n_jobs=$(CORES) torch_threads=1 tracking.uri=sqlite:///$(STUDIES_DIR)/$(1)/mlflow.db \
+	'hydra.sweep.dir=$(STUDIES_DIR)/$(1)/multirun/$${now:%Y-%m-%d_%H-%M-%S}' $(ARGS) $(CTRL_C_QUIET)
+
 study-original: $(STAMP)  ## the original study at 1M steps, at nice 19, in ~/.walkers/original
-	@mkdir -p $(ORIGINAL_DIR)
-	$(PY) -m walkers.ingest bundle=results/reinforce_walker2d/bundle tracking.uri=sqlite:///$(ORIGINAL_DIR)/mlflow.db
+	@mkdir -p $(STUDIES_DIR)/original
+	$(PY) -m walkers.ingest bundle=results/reinforce_walker2d/bundle tracking.uri=sqlite:///$(STUDIES_DIR)/original/mlflow.db
 	@# the TD3 seeds in flight when a session ended, with their checkpoints (a new machine continues them; here: nothing to add)
-	test ! -d results/original_in_flight/bundle || $(PY) -m walkers.ingest bundle=results/original_in_flight/bundle tracking.uri=sqlite:///$(ORIGINAL_DIR)/mlflow.db
-	WALKERS_WORK_DIR=$(ORIGINAL_DIR)/work nice -n 19 $(PY) -m walkers.train -m ab=original hydra/launcher=joblib hydra.launcher.n_jobs=$(CORES) torch_threads=1 tracking.uri=sqlite:///$(ORIGINAL_DIR)/mlflow.db 'hydra.sweep.dir=$(ORIGINAL_DIR)/multirun/$${now:%Y-%m-%d_%H-%M-%S}' $(ARGS) $(CTRL_C_QUIET)
+	test ! -d results/original_in_flight/bundle || $(PY) -m walkers.ingest bundle=results/original_in_flight/bundle tracking.uri=sqlite:///$(STUDIES_DIR)/original/mlflow.db
+	$(call background_study,original)
+
+study-bipedal: $(STAMP)  ## the tutorial's study, TD3 vs DDPG on BipedalWalker-v3, at nice 19
+	@mkdir -p $(STUDIES_DIR)/bipedal
+	$(call background_study,bipedal)
 
 compare: $(STAMP)  ## an A/B report from finished runs (ARGS="env=... algos=[...] ...")
 	$(PY) -m walkers.compare $(ARGS)
@@ -207,4 +218,4 @@ clean:  ## remove run outputs and caches; keeps .venv and optuna.db
 	rm -rf mlflow.db mlruns mlartifacts outputs multirun .walkers reports .pytest_cache .ruff_cache
 	find . -name __pycache__ -type d -prune -not -path './$(VENV)/*' -exec rm -rf {} +
 
-.PHONY: help install train ab ab-all study baseline baselines-gpu offline-gpu offline compare plan results docs dashboard bench-sequential ui-check test test-slow test-faults test-cluster chaos stack bench bench-profile bench-path bench-population bench-throughput bench-dt bench-learning bench-scale menus lint ui clean
+.PHONY: help install train ab ab-all study study-original study-bipedal baseline baselines-gpu offline-gpu offline compare plan results docs dashboard bench-sequential ui-check test test-slow test-faults test-cluster chaos stack bench bench-profile bench-path bench-population bench-throughput bench-dt bench-learning bench-scale menus lint ui clean

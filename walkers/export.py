@@ -42,7 +42,7 @@ def export(cfg: DictConfig) -> bundles.Exported:
             f"{redacted_uri(cfg.tracking.uri)}: nothing exported"
         )
     study = None if cfg.study is None else str(cfg.study)
-    runs = bundles.select_runs(client, experiment.experiment_id, study, where, statuses)
+    runs = bundles.runs_to_export(client, experiment.experiment_id, study, where, statuses)
     if not runs:
         raise ConfigError(f"no run of {cfg.tracking.experiment!r} matches: nothing exported")
     selection = f"study={study}" if study else "experiment"

@@ -201,7 +201,7 @@ def test_a_dataset_named_without_its_version_is_found_when_one_version_has_runs(
     """``dataset=`` of a report: the exact id, or the id without ``-v<N>`` when runs learned
     from one version of it; several versions or none are one-line errors naming what is there."""
 
-    def offline(dataset: str):  # what select_runs reads of an MLflow run
+    def offline(dataset: str):  # what comparable_runs reads of an MLflow run
         tags = {"dataset": dataset, "walkers.x_axis": "gradient_steps"}
         return SimpleNamespace(data=SimpleNamespace(tags=tags))
 

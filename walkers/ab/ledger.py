@@ -135,7 +135,7 @@ def steps_logged(runs: list) -> dict[str, int]:
     return logged
 
 
-def cpu_hours(runs: list, spec: StudySpec) -> dict[str, tuple[float, int, int]]:
+def cpu_hours_by_arm(runs: list, spec: StudySpec) -> dict[str, tuple[float, int, int]]:
     """arm -> (the CPU-hours of its FINISHED runs that counted them, how many did, how many
     FINISHED): what the study cost so far, over every env and seed."""
     hours: dict[str, tuple[float, int, int]] = {}

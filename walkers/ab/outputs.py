@@ -61,7 +61,7 @@ def write_results(
         log.warning("study %r: no report: %s", spec.name, e)
     try:
         experiment_id = client.get_experiment_by_name(experiment).experiment_id
-        runs = bundles.select_runs(client, experiment_id, spec.name, {}, [FINISHED])
+        runs = bundles.runs_to_export(client, experiment_id, spec.name, {}, [FINISHED])
         done = bundles.export_runs(
             client,
             experiment,

@@ -141,7 +141,7 @@ class StudySweeper(Sweeper):
             runs = ledger.job_runs(client, experiment, spec)
             scores = ledger.finished_scores(runs, spec) | self.reference_scores
             now = standing(spec, scores)
-            hours = ledger.cpu_hours(runs, spec)
+            hours = ledger.cpu_hours_by_arm(runs, spec)
             ledger.log_standing(study, now, sum(len(v) for v in scores.values()), hours)
             jobs = now.missing(scores)
             if not jobs:

@@ -48,9 +48,9 @@ from walkers.analysis.references import (
 from walkers.analysis.report import verdict, write_report
 from walkers.analysis.selection import (
     CURVE_METRIC,
+    comparable_runs,
     load_seed_runs,
     published_figures,
-    select_runs,
 )
 from walkers.errors import ConfigError
 from walkers.secrets import redacted_uri
@@ -132,7 +132,7 @@ def build_comparison(cfg: DictConfig, beside: dict | None = None):
         source_of |= {r.info.run_id: reference for r in reference.runs}
         runs = runs + reference.runs
     _check_group_by(group_by, runs, runs_place(cfg))
-    chosen, budgets, notes = select_runs(
+    chosen, budgets, notes = comparable_runs(
         runs, cfg.env.id, algos, cfg.total_steps, cfg.gradient_steps, cfg.dataset
     )
     loaded = {}

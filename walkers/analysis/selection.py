@@ -47,7 +47,7 @@ def _listed(counts: Counter, key: str) -> str:
     return ", ".join(f"{key}={value}: {n}" for value, n in sorted(counts.items(), key=str))
 
 
-def select_runs(
+def comparable_runs(
     runs: list,
     env_id: str,
     algos: list[str],

@@ -7,7 +7,7 @@ from omegaconf import DictConfig
 from walkers.analysis import formatting, stats
 from walkers.analysis.comparison_data import AXIS_NAMES, AlgoResult
 from walkers.analysis.formatting import header, interval, one_decimal
-from walkers.analysis.suite_scores import SuiteStatistics, Task, budget, cpu_hours
+from walkers.analysis.suite_scores import SuiteStatistics, Task, budget, suite_cpu_hours
 
 
 def suite_markdown(s: SuiteStatistics, tasks: dict[str, Task], cfg: DictConfig, kind: str) -> str:
@@ -46,7 +46,7 @@ def suite_markdown(s: SuiteStatistics, tasks: dict[str, Task], cfg: DictConfig, 
         lines.append(
             f"| {arm} | "
             + " | ".join(cells)
-            + f" | {runs} | {formatting.cpu_hours(*cpu_hours(results[arm]), digits='.2f')} |"
+            + f" | {runs} | {formatting.cpu_hours(*suite_cpu_hours(results[arm]), digits='.2f')} |"
         )
     lines += [
         "",

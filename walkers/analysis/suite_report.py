@@ -24,9 +24,9 @@ from walkers.analysis.suite_markdown import suite_markdown
 from walkers.analysis.suite_scores import (
     Task,
     budget,
-    cpu_hours,
     dataset_task,
     env_config,
+    suite_cpu_hours,
     suite_statistics,
 )
 from walkers.errors import ConfigError
@@ -106,7 +106,7 @@ def write_suite(comparisons, tasks: dict[str, Task], cfg: DictConfig, out: Path,
         "holm_adjusted": s.adjusted,
         "correction": s.correction,
         "budgets": {arm: budget(by_task) for arm, by_task in s.results.items()},
-        "cpu_hours": {arm: cpu_hours(by_task) for arm, by_task in s.results.items()},
+        "cpu_hours": {arm: suite_cpu_hours(by_task) for arm, by_task in s.results.items()},
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     best = max(s.aggregates, key=lambda arm: s.aggregates[arm]["IQM"][0])

@@ -141,7 +141,7 @@ def budget(by_task: dict[str, AlgoResult]) -> int | None:
     return budgets.pop() if len(budgets) == 1 else None
 
 
-def cpu_hours(by_task: dict[str, AlgoResult]) -> tuple[float, int, int]:
+def suite_cpu_hours(by_task: dict[str, AlgoResult]) -> tuple[float, int, int]:
     """An arm's CPU-hours over the suite: (hours, runs that counted them, runs)."""
     counted = [r.cpu_hours for r in by_task.values()]
     runs = sum(len(r.runs) for r in by_task.values())

@@ -84,14 +84,14 @@ __all__ = [
     "export_runs",
     "import_bundle",
     "read_bundle",
-    "select_runs",
+    "runs_to_export",
 ]
 
 log = logging.getLogger("walkers")
 
 
 # --- export -----------------------------------------------------------------------------------
-def select_runs(
+def runs_to_export(
     client, experiment_id: str, study: str | None, where: dict[str, str], statuses: list[str]
 ) -> list:
     """The runs to export: a study's (its own run and its jobs'), else the whole experiment;

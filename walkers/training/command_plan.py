@@ -20,6 +20,7 @@ decision the user did not ask for by name is said in one line.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import logging
@@ -27,6 +28,7 @@ import math
 import socket
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
@@ -43,6 +45,7 @@ from walkers.tracking.client import (
 )
 from walkers.tracking.names import FAILED, FINISHED, JOB_KEY_TAG, differing_keys
 from walkers.training.checkpoints import Checkpoint
+from walkers.training.evaluation import References, offline_references
 from walkers.training.provenance import (
     COMMAND_KEY_TAG,
     DIVERGED_TAG,
@@ -51,12 +54,15 @@ from walkers.training.provenance import (
     SUPERSEDED_TAG,
     WORKER_TAG,
     code_digests,
+    dataset_params,
     job_key_of_seed,
     other_data,
 )
 from walkers.training.run import RunFolder, TrainingRun, in_training_here
-from walkers.training.run_dataset import RunDataset, loader
-from walkers.training.validate import check_command, is_offline, validate
+from walkers.training.validate import check_command, check_dataset_env, is_offline, validate
+
+if TYPE_CHECKING:  # Minari is imported only when a dataset is used
+    from walkers.data.datasets import OfflineData
 
 log = logging.getLogger("walkers")
 
@@ -109,6 +115,29 @@ class Plan:
         return float(np.mean(values))
 
 
+@dataclass(frozen=True)
+class RunDataset:
+    """The dataset an offline run learns from: the data, the references its normalized scores are
+    measured between, and its statistics as the params that say which data a run learned from
+    (:func:`walkers.training.provenance.dataset_params`)."""
+
+    dataset: OfflineData
+    references: References
+
+    @classmethod
+    def load(cls, cfg: DictConfig) -> RunDataset:
+        """``cfg.dataset``, checked against ``cfg.env``."""
+        from walkers.data import datasets
+
+        data = datasets.load(cfg.dataset)
+        check_dataset_env(cfg, data)
+        return cls(data, offline_references(cfg.env, data))
+
+    @functools.cached_property
+    def params(self) -> dict[str, str]:
+        return dataset_params(self.dataset, self.references)
+
+
 def plan_command(cfg: DictConfig, overrides=()) -> Plan:
     """What ``cfg`` (a composed config; ``overrides``: its command-line overrides) will do."""
     check_command(cfg)  # before anything is read or created
@@ -116,7 +145,7 @@ def plan_command(cfg: DictConfig, overrides=()) -> Plan:
         validate(cfg)  # before the store is asked anything
     resumed = f"resume={cfg.resume!r}" if isinstance(cfg.resume, str) else f"resume={cfg.resume}"
     client = connect(cfg.tracking.uri, looking_for=resumed if cfg.resume else None)
-    run_dataset = loader()
+    run_dataset = _dataset_loader()
     if cfg.population == 1:  # the key and name of the one run: its seed's, as a member's
         cfg.job_key = job_key_of_seed(cfg.job_key, cfg.seed)
         cfg.tracking.run_name = job_key_of_seed(cfg.tracking.run_name, cfg.seed)
@@ -141,6 +170,20 @@ def plan_command(cfg: DictConfig, overrides=()) -> Plan:
     if data is not None and cfg.resume:  # an offline run goes on learning from its own data
         _check_same_data(client, cfg, data)
     return Plan(cfg, client, members, run_ids, starts, data, new_run_tags)
+
+
+def _dataset_loader() -> Callable[[DictConfig], RunDataset]:
+    """:meth:`RunDataset.load`, once per dataset and env in a plan (it may ask for the data to
+    compare an earlier run's with, then to learn from)."""
+    loaded: dict[tuple[str, str], RunDataset] = {}
+
+    def load(cfg: DictConfig) -> RunDataset:
+        key = (cfg.dataset, cfg.env.id)
+        if key not in loaded:
+            loaded[key] = RunDataset.load(cfg)
+        return loaded[key]
+
+    return load
 
 
 # --- the command's identity -------------------------------------------------------------------

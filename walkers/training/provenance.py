@@ -51,7 +51,7 @@ def job_key_of_seed(job_key: str | None, seed: int) -> str | None:
 
 def new_run_tags(cfg: DictConfig, x_axis: str, data=None) -> dict[str, str]:
     """The tags a new run starts with; ``x_axis``: what its steps count; ``data``: an offline
-    run's data (:class:`~walkers.training.run_dataset.RunDataset`)."""
+    run's data (:class:`~walkers.training.command_plan.RunDataset`)."""
     from walkers.agents.fingerprint import CODE_DIGEST_TAG, code_digest  # torch: module doc
 
     commit = git_commit()

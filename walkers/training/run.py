@@ -155,7 +155,7 @@ class TrainingRun:
         way with its ``config.yaml`` written and logged.
 
         ``axis``: what the run's steps count; ``data``: an offline run's
-        :class:`~walkers.training.run_dataset.RunDataset`; ``extra_tags``
+        :class:`~walkers.training.command_plan.RunDataset`; ``extra_tags``
         are set either way (a population member: its place in the population). If opening
         fails, the run ends at once: a new run FAILED (KILLED if a signal stopped it); a
         continued run KILLED, as it was stopped before it could go on, so that it can still be

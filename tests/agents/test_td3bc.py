@@ -538,7 +538,7 @@ def _random_dataset(name: str, episodes: int, overrides: list[str]) -> str:
             config_name="collect",
         )
     )  # fmt: skip
-    assert recorded["digest"] == datasets.load(name).digest  # as written, as read back
+    assert recorded["digest"] == datasets.load_local(name).digest  # as written, as read back
     return recorded["digest"]
 
 

@@ -165,7 +165,7 @@ def _last(store, run, key: str) -> float:
 
 def test_collected_episodes_load_back_the_same(offline):
     """Mixed policies in one dataset; replaying them from the same seeds gives the same data."""
-    data = datasets.load(MIXED)
+    data = datasets.load_local(MIXED)
     assert data.env_id == "Pendulum-v1" and len(data.episodes) == 6
     assert offline["mixed"]["episodes"] == 6 and len(offline["mixed"]["sources"]) == 2
     shapes = {(e.observations.shape, e.actions.shape) for e in data.episodes}
@@ -189,7 +189,7 @@ def test_collected_episodes_load_back_the_same(offline):
 
 
 def test_dataset_stats_are_printed_logged_and_stored(offline):
-    data = datasets.load(EXPERT)
+    data = datasets.load_local(EXPERT)
     returns = data.returns
     client = offline["client"]
     (run,) = [r for r in all_runs(client) if r.data.tags.get("walkers.kind") == "dataset"]
@@ -225,7 +225,7 @@ def test_replay_dataset_holds_every_training_episode(offline):
 
 def test_dt_clearly_beats_a_random_policy(offline):
     run = _run(offline, "dt")
-    data = datasets.load(EXPERT)
+    data = datasets.load_local(EXPERT)
     final = _last(offline, run, "eval/return_mean")  # conditioned on HIGH
     print("DT", final, "random policy", data.random_return, "dataset", data.returns.mean())
     assert final > data.random_return + 500
@@ -330,7 +330,7 @@ def test_replay_steps_keep_what_the_run_saw_first(offline):
             m.value for m in offline["client"].get_metric_history(run_id, "train/episode_return")
         ]
         assert stats["episodes"] == 5 and stats["steps"] == 1000  # 200-step episodes
-        data = datasets.load("walkers/pendulum/first-1000")
+        data = datasets.load_local("walkers/pendulum/first-1000")
         np.testing.assert_allclose(data.returns, trained[:5], rtol=1e-5)
         for bad, message in [
             ("replay_steps=9000", "replay_steps=9000 is not allowed: must be between 1 and"),

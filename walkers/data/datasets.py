@@ -87,7 +87,7 @@ class OfflineData:
         return hashed.hexdigest()[:16]
 
 
-def load(name: str) -> OfflineData:
+def load_local(name: str) -> OfflineData:
     """The local dataset ``name``; if it is missing, a :class:`ConfigError` listing the others."""
     ds_id = dataset_id(name)
     available = local_ids()
@@ -179,4 +179,4 @@ def write(
             ref_min_score=float(random_return),
             ref_max_score=behaviour,
         )
-    return load(ds_id)
+    return load_local(ds_id)

@@ -129,7 +129,7 @@ class RunDataset:
         """``cfg.dataset``, checked against ``cfg.env``."""
         from walkers.data import datasets
 
-        data = datasets.load(cfg.dataset)
+        data = datasets.load_local(cfg.dataset)
         check_dataset_env(cfg, data)
         return cls(data, offline_references(cfg.env, data))
 

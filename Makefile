@@ -80,20 +80,27 @@ baseline: $(STAMP)  ## one algorithm's 1M-step baseline (3 envs x 3 seeds); reru
 	$(PY) -m walkers.train -m algo=$(BASELINE_ALGO) 'env=$(BASELINE_ENVS)' 'seed=$(BASELINE_SEEDS)' total_steps=$(BASELINE_STEPS) hydra/launcher=joblib progress=false 'job_key="baseline/$(BASELINE_ALGO)/$${env.id}/{seed}"' 'tracking.run_name="baseline-$(BASELINE_ALGO)-$${env.id}-s{seed}"' tracking.experiment=baseline_$(BASELINE_ALGO) tracking.uri=$(BASELINE_STORE) $(ARGS) $(CTRL_C_QUIET)
 
 # A study at its full budget on this machine, in the background at the lowest priority (one job
-# a core, one torch thread a job): $(call background_study,NAME). The same command continues it.
-background_study = WALKERS_WORK_DIR=$(STUDIES_DIR)/$(1)/work nice -n 19 $(PY) -m walkers.train -m ab=$(1) \
+# a core, one torch thread a job), its store and work in STUDIES_DIR/<study>: a recipe's line
+# $(call background_study,NAME). First the study's committed bundles, where they exist:
+# results/NAME_in_flight (its seeds in flight when a session ended, with their checkpoints: a new
+# machine continues them) and results/NAME (the study ended: the command answers at once); on the
+# machine that trained them they add nothing. The same command continues the study.
+define background_study
+@mkdir -p $(STUDIES_DIR)/$(1)
+@for bundle in results/$(1)_in_flight/bundle results/$(1)/bundle; do if [ -d $$bundle ]; then \
+	$(PY) -m walkers.ingest bundle=$$bundle tracking.uri=sqlite:///$(STUDIES_DIR)/$(1)/mlflow.db || exit; fi; done
+WALKERS_WORK_DIR=$(STUDIES_DIR)/$(1)/work nice -n 19 $(PY) -m walkers.train -m ab=$(1) \
 	hydra.launcher.n_jobs=$(CORES) torch_threads=1 tracking.uri=sqlite:///$(STUDIES_DIR)/$(1)/mlflow.db \
 	'hydra.sweep.dir=$(STUDIES_DIR)/$(1)/multirun/$${now:%Y-%m-%d_%H-%M-%S}' $(ARGS) $(CTRL_C_QUIET)
+endef
 
 study-original: $(STAMP)  ## the original study at 1M steps, at nice 19, in ~/.walkers/original
 	@mkdir -p $(STUDIES_DIR)/original
+	@# its REINFORCE arm, trained first under the study's job keys
 	$(PY) -m walkers.ingest bundle=results/reinforce_walker2d/bundle tracking.uri=sqlite:///$(STUDIES_DIR)/original/mlflow.db
-	@# the TD3 seeds in flight when a session ended, with their checkpoints (a new machine continues them; here: nothing to add)
-	test ! -d results/original_in_flight/bundle || $(PY) -m walkers.ingest bundle=results/original_in_flight/bundle tracking.uri=sqlite:///$(STUDIES_DIR)/original/mlflow.db
 	$(call background_study,original)
 
 study-bipedal: $(STAMP)  ## the tutorial's study, TD3 vs DDPG on BipedalWalker-v3, at nice 19
-	@mkdir -p $(STUDIES_DIR)/bipedal
 	$(call background_study,bipedal)
 
 compare: $(STAMP)  ## an A/B report from finished runs (ARGS="env=... algos=[...] ...")

@@ -9,7 +9,7 @@ import shutil
 
 import pytest
 
-from tests.conftest import PROJECT_ROOT
+from tests.conftest import PROJECT_ROOT, run_cli
 from walkers.results import RESULTS_DIR, pages, write_docs, write_home, write_page
 
 
@@ -121,3 +121,28 @@ def test_the_sites_home_is_the_readme_with_every_link_reaching_a_site_page(tmp_p
     assert not missing, f"README links with no page on the site: {missing}"
     strip = re.compile(r"\]\([^)]*\)")  # the text, links aside, is the README's
     assert strip.sub("]", home).splitlines()[10:] == strip.sub("]", readme).splitlines()[10:]
+
+
+def test_the_ended_original_study_answers_from_its_committed_bundle_without_training(store):
+    """A new machine's `make study-original` (its recipe's steps, in a fresh store): REINFORCE's
+    arm and the ended study come in from `results/`, and the study command answers at once with
+    the committed verdict: no job is launched, the study's report is written."""
+    from tests.study_kit import ingest
+
+    for bundle in ("reinforce_walker2d", "original"):
+        done = ingest(store, RESULTS_DIR / bundle / "bundle")
+        assert done.returncode == 0, done.stderr[-2000:]
+    result = run_cli(
+        ["-m", "ab=original", *store["overrides"], f"hydra.sweep.dir={store['path']}/multirun"],
+        cwd=store["path"],
+    )
+    out = result.stdout + result.stderr
+    assert result.returncode == 0, out[-3000:]
+    assert "launching" not in out, out[-3000:]
+    committed = json.loads(
+        (RESULTS_DIR / "original" / "report" / "Walker2d-v5" / "summary.json").read_text()
+    )
+    written = json.loads(
+        (store["path"] / "reports" / "ab_original" / "Walker2d-v5" / "summary.json").read_text()
+    )
+    assert written["algos"] == committed["algos"]

@@ -123,6 +123,7 @@ def test_the_sites_home_is_the_readme_with_every_link_reaching_a_site_page(tmp_p
     assert strip.sub("]", home).splitlines()[10:] == strip.sub("]", readme).splitlines()[10:]
 
 
+@pytest.mark.slow  # `make test-slow`: two bundles in, a study's report (about 2 minutes)
 def test_the_ended_original_study_answers_from_its_committed_bundle_without_training(store):
     """A new machine's `make study-original` (its recipe's steps, in a fresh store): REINFORCE's
     arm and the ended study come in from `results/`, and the study command answers at once with

@@ -9,10 +9,12 @@ from __future__ import annotations
 import logging
 
 import numpy as np
+import pytest
 import torch
 
 from tests.conftest import TINY, compose_cfg, tiny_offline_data
 from walkers.agents.base import Transition
+from walkers.agents.common.functional import guarded_adam_step
 from walkers.agents.common.health import (
     SKIPPED,
     SKIPPED_IN_A_ROW,
@@ -44,20 +46,44 @@ def _guarded_step(optimizer, member_loss) -> torch.Tensor:
     return skipped
 
 
-def test_a_finite_loss_with_an_infinite_gradient_skips_that_member_only():
+def _functional_step(optimizer, member_loss) -> torch.Tensor:
+    """The same step as a compiled update takes it (``compile=true`` on the CPU)."""
+    params = [p for group in optimizer.param_groups for p in group["params"]]
+    grads = torch.autograd.grad(member_loss.sum(), params)
+    return guarded_adam_step(optimizer, list(grads), member_loss.detach())
+
+
+GUARDED_STEPS = pytest.mark.parametrize("step", [_guarded_step, _functional_step])
+
+
+@GUARDED_STEPS
+def test_a_finite_loss_with_an_infinite_gradient_skips_that_member_only(step):
     w, optimizer = _sqrt_members([0.0, 4.0])
     loss = w.squeeze(-1).sqrt()
     assert torch.isfinite(loss).all()
-    bad = _guarded_step(optimizer, loss)
+    bad = step(optimizer, loss)
     assert bad.tolist() == [1.0, 0.0]
     assert w[0].item() == 0.0 and w[1].item() != 4.0  # member 0 untouched, member 1 stepped
 
 
-def test_a_single_agent_with_an_infinite_gradient_takes_no_step():
+@GUARDED_STEPS
+def test_a_single_agent_with_an_infinite_gradient_takes_no_step(step):
     w, optimizer = _sqrt_members([0.0])
-    bad = _guarded_step(optimizer, w.squeeze(-1).sqrt())
+    bad = step(optimizer, w.squeeze(-1).sqrt())
     assert bad.tolist() == [1.0] and w.item() == 0.0
     assert all(torch.isfinite(s).all() for s in optimizer.state[w].values())  # moments clean
+
+
+def test_the_functional_adam_step_is_fused_adams():
+    """Three steps of members (1, 4) with the loss sqrt(w): the compiled update's Adam, written
+    as tensor ops, moves the weights and moments as torch's fused Adam does."""
+    (w1, eager), (w2, functional) = _sqrt_members([1.0, 4.0]), _sqrt_members([1.0, 4.0])
+    for _ in range(3):
+        _guarded_step(eager, w1.squeeze(-1).sqrt())
+        _functional_step(functional, w2.squeeze(-1).sqrt())
+    torch.testing.assert_close(w2, w1)
+    for key in ("step", "exp_avg", "exp_avg_sq"):
+        torch.testing.assert_close(functional.state[w2][key], eager.state[w1][key])
 
 
 def guarded_agent_step(optimizer, loss, max_grad_norm, scheduler=None):
@@ -87,9 +113,10 @@ def test_a_skipped_agent_step_still_advances_its_learning_rate_schedule():
     assert schedule.last_epoch == 1 and optimizer.param_groups[0]["lr"] == 0.2
 
 
-def _td3_with_a_broken_actor(patience_updates: int = 12):
+def _td3_with_a_broken_actor(patience_updates: int = 12, compiled: bool = False):
     cfg = compose_cfg(["algo=td3", "env=pendulum", "algo.hidden_sizes=[16,16]",
-                       "algo.learning_starts=8", "algo.batch_size=8"])  # fmt: skip
+                       "algo.learning_starts=8", "algo.batch_size=8",
+                       f"algo.compile={compiled}"])  # fmt: skip
     env = make_env(cfg.env)
     agent = build_agent(cfg, env_spaces(env))
     obs, _ = env.reset(seed=0)
@@ -109,8 +136,11 @@ def _td3_with_a_broken_actor(patience_updates: int = 12):
     return agent, [agent.update() for _ in range(patience_updates)]
 
 
-def test_an_actor_skipped_again_and_again_counts_toward_divergence():
-    agent, metrics = _td3_with_a_broken_actor()
+@pytest.mark.parametrize("compiled", [False, True], ids=["eager", "compiled"])
+def test_an_actor_skipped_again_and_again_counts_toward_divergence(compiled):
+    """The same counts eager and with the whole update compiled (``compile=true`` on the CPU),
+    and the actor's weights never move."""
+    agent, metrics = _td3_with_a_broken_actor(compiled=compiled)
     assert agent.policy_delay == 2
     critic = [m["loss/critic"].item() for m in metrics]
     assert all(np.isfinite(critic))  # the critic learns on; only the actor's steps are skipped
@@ -118,6 +148,9 @@ def test_an_actor_skipped_again_and_again_counts_toward_divergence():
     in_a_row = [m[SKIPPED_IN_A_ROW].item() for m in metrics]
     assert in_a_row == [0.0] + [float(i) for i in range(1, len(metrics))]
     assert metrics[-1][SKIPPED].item() == len(metrics) - 1
+    # the actor never moved: its target, a copy moved toward it, is still equal to it
+    actor, target = agent.actor.parameters(), agent.actor_target.parameters()
+    assert all(torch.equal(p, q) for p, q in zip(actor, target, strict=True))
     restored = agent.guard.state_dict()
     agent.guard.load_state_dict({k: [0.0] for k in restored})
     agent.guard.load_state_dict(restored)  # the delayed step's verdict survives a checkpoint

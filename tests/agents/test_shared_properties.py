@@ -62,10 +62,10 @@ def per_member_parts(agent, member: int) -> dict[str, torch.Tensor]:
 
 
 # --- compile = eager ------------------------------------------------------------------------------
-def compile_tolerance(name: str, agent, key: str) -> dict:
-    """How near a compiled update must come to the eager one (``key``: a part, or "" for the
-    update's metrics). Float32 sums in another order: assert_close's defaults, except where a
-    quantity is rounding noise to begin with:
+def rounding_tolerance(name: str, agent, key: str) -> dict:
+    """How near a compiled update must come to the eager one, or a member to the single agent of
+    its seed (``key``: a part, or "" for the update's metrics). Float32 sums in another order:
+    assert_close's defaults, except where a quantity is rounding noise to begin with:
 
     - TD7: its three losses chain through an encoder and hard target copies (1e-4 relative);
     - CrossQ: a hidden unit active on the whole batch, followed by a batch renormalization, has
@@ -105,24 +105,28 @@ def test_compiled_updates_follow_the_eager_ones(name):
         assert set(got) == set(expected)
         for key, value in expected.items():
             torch.testing.assert_close(
-                got[key], value, msg=key, **compile_tolerance(name, eager, "")
+                got[key], value, msg=key, **rounding_tolerance(name, eager, "")
             )
     for member in range(population):
         mine = per_member_parts(compiled, member)
         for key, value in per_member_parts(eager, member).items():
-            tolerance = compile_tolerance(name, eager, key)
+            tolerance = rounding_tolerance(name, eager, key)
             torch.testing.assert_close(mine[key], value, msg=key, **tolerance)
     moved = [not torch.equal(v, start[k]) for k, v in per_member_parts(compiled, 0).items()]
     assert any(moved)  # it compares learning, not two idle agents
 
 
 # --- a NaN stays in its member --------------------------------------------------------------------
-@pytest.mark.parametrize("name", POPULATIONS)
-def test_a_nan_stays_in_its_member(name):
+@pytest.mark.parametrize(
+    "name,compiled",
+    [(name, False) for name in POPULATIONS] + [("td3", True)],  # TD3 whole, compiled on the CPU
+)
+def test_a_nan_stays_in_its_member(name, compiled):
     cls = agent_class(name)
+    settings = tiny(name, compile=True) if compiled else tiny(name)
 
     def trained(rewards):
-        agent = cls(OBS, [-2.0], [2.0], population=2, seed=0, **defaults_for(cls, **tiny(name)))
+        agent = cls(OBS, [-2.0], [2.0], population=2, seed=0, **defaults_for(cls, **settings))
         feed_members(agent, rewards=rewards, terminate_every=37)
         return agent
 
@@ -161,4 +165,8 @@ def test_a_member_updates_as_the_single_agent_of_its_seed(name):
         )
     ours = per_member_parts(alone, 0)
     for key, value in per_member_parts(pair, 1).items():
-        torch.testing.assert_close(value, ours[key], rtol=1e-4, atol=1e-5, msg=key)
+        # CrossQ's rounding-noise gradients (rounding_tolerance) part the two on some CPUs
+        # (AVX-512's sums: its renormalized actor's first layer 5e-4 apart after 60 updates)
+        crossq = name == "crossq"
+        tolerance = rounding_tolerance(name, alone, key) if crossq else {"rtol": 1e-4, "atol": 1e-5}
+        torch.testing.assert_close(value, ours[key], msg=key, **tolerance)

@@ -27,6 +27,7 @@ import numpy as np
 import torch
 
 from walkers.agents.common.actor_critic import ActorCritic, frozen, logged
+from walkers.agents.common.functional import GradientOf, adam_state, guarded_adam_step
 from walkers.agents.common.health import skip_nonfinite
 from walkers.agents.common.networks import soft_update
 from walkers.agents.common.noise import NOISE_TYPES, GaussianNoise
@@ -116,6 +117,9 @@ class TD3(ActorCritic):
         b = self.sample()
         # the target smoothing noise eps ~ N(0, 1) (DDPG: none)
         smoothing_noise = self.noise_like(b.action) if self.policy_noise > 0 else None
+        delayed = self.num_updates % self.policy_delay == 0
+        if self.compiled_steps is not None:  # compile=true on the CPU: the steps below, whole
+            return self.compiled_steps(b, smoothing_noise, delayed)
 
         critic_loss, q_mean = self.critic_loss(b, smoothing_noise)
         self.critic_optimizer.zero_grad(set_to_none=True)
@@ -125,7 +129,7 @@ class TD3(ActorCritic):
         metrics = {"loss/critic": logged(critic_loss), "train/q_mean": logged(q_mean)}
 
         actor_skipped = None  # the delayed step's verdict, when it runs
-        if self.num_updates % self.policy_delay == 0:
+        if delayed:
             with frozen(self.critic):
                 actor_loss = self.actor_loss(b)
             self.actor_optimizer.zero_grad(set_to_none=True)
@@ -140,6 +144,48 @@ class TD3(ActorCritic):
             soft_update(self.actor_target, self.actor, self.tau)
             metrics["loss/actor"] = logged(actor_loss)
         return metrics | self.record_health(critic_skipped, delayed_bad=actor_skipped)
+
+    def functional_steps(
+        self, b: Batch, smoothing_noise: torch.Tensor | None, delayed: bool
+    ) -> dict[str, torch.Tensor]:
+        """:meth:`update`'s steps after its draws, with the gradients of the same losses taken
+        by :func:`torch.func.grad` and Adam and the guard as tensor ops
+        (:mod:`walkers.agents.common.functional`), so that ``torch.compile`` takes them whole:
+        ``compile=true`` on the CPU (one graph with the delayed step, one without)."""
+        grads, (critic_loss, q_mean) = self.critic_gradient(b, smoothing_noise)
+        critic_skipped = guarded_adam_step(
+            self.critic_optimizer, grads, critic_loss, self.num_critics
+        )
+        metrics = {"loss/critic": logged(critic_loss), "train/q_mean": logged(q_mean)}
+
+        actor_skipped = None
+        if delayed:
+            grads, (actor_loss,) = self.actor_gradient(b)
+            actor_skipped = guarded_adam_step(
+                self.actor_optimizer, grads, actor_loss, also_skip=critic_skipped
+            )
+            soft_update(self.critic_target, self.critic, self.tau)
+            soft_update(self.actor_target, self.actor, self.tau)
+            metrics["loss/actor"] = logged(actor_loss)
+        return metrics | self.record_health(critic_skipped, delayed_bad=actor_skipped)
+
+    def compile_update(self) -> None:
+        """``compile=true`` on the CPU compiles :meth:`functional_steps` (the whole update but
+        its draws); elsewhere the core's (the losses, or CUDA graphs)."""
+        self.compiled_steps = None
+        if self.compile and self.device.type == "cpu":
+            self.critic_gradient = GradientOf(self.critic, self.critic_loss)
+            self.actor_gradient = GradientOf(self.actor, lambda b: (self.actor_loss(b),))
+            for optimizer in (self.critic_optimizer, self.actor_optimizer):
+                adam_state(optimizer)  # made now: the compiled steps update it in place
+            # Dynamo compiles anew for each agent (its guards hold the agent's objects) and
+            # runs eagerly, silently, past its limit of 8 compilations of one function, which
+            # a process that trains agent after agent (a multirun's jobs in turn) would reach:
+            # each compiled agent starts from empty caches (one agent trains at a time).
+            torch.compiler.reset()
+            self.compiled_steps = torch.compile(self.functional_steps, fullgraph=True)
+        else:
+            super().compile_update()
 
     def critic_loss(
         self, b: Batch, smoothing_noise: torch.Tensor | None

@@ -26,7 +26,7 @@ STUDIES_DIR ?= $(HOME)/.walkers
 CORES := $(shell nproc)
 
 help:  ## list the make targets and the Makefile's options
-	@grep -hE '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk 'BEGIN {FS = ":.*## "}; \
+	@grep -hE '^[a-zA-Z0-9_-]+:.*## ' $(MAKEFILE_LIST) | awk 'BEGIN {FS = ":.*## "}; \
 		{line = sprintf("  make %-18s %s", $$1, $$2); \
 		print (length(line) > 100 ? substr(line, 1, 97) "..." : line)}'
 	@printf '%s\n' '' \
@@ -102,6 +102,9 @@ study-original: $(STAMP)  ## the original study at 1M steps, at nice 19, in ~/.w
 
 study-bipedal: $(STAMP)  ## the tutorial's study, TD3 vs DDPG on BipedalWalker-v3, at nice 19
 	$(call background_study,bipedal)
+
+study-td3-compile: $(STAMP)  ## TD3 eager vs its CPU-compiled update on Walker2d (equal?), nice 19
+	$(call background_study,td3_compile)
 
 compare: $(STAMP)  ## an A/B report from finished runs (ARGS="env=... algos=[...] ...")
 	$(PY) -m walkers.compare $(ARGS)
@@ -225,4 +228,4 @@ clean:  ## remove run outputs and caches; keeps .venv and optuna.db
 	rm -rf mlflow.db mlruns mlartifacts outputs multirun .walkers reports .pytest_cache .ruff_cache
 	find . -name __pycache__ -type d -prune -not -path './$(VENV)/*' -exec rm -rf {} +
 
-.PHONY: help install train ab ab-all study study-original study-bipedal baseline baselines-gpu offline-gpu offline compare plan results docs dashboard bench-sequential ui-check test test-slow test-faults test-cluster chaos stack bench bench-profile bench-path bench-population bench-throughput bench-dt bench-learning bench-scale menus lint ui clean
+.PHONY: help install train ab ab-all study study-original study-bipedal study-td3-compile baseline baselines-gpu offline-gpu offline compare plan results docs dashboard bench-sequential ui-check test test-slow test-faults test-cluster chaos stack bench bench-profile bench-path bench-population bench-throughput bench-dt bench-learning bench-scale menus lint ui clean

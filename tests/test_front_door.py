@@ -25,7 +25,7 @@ ENVS = {path.stem for path in (PROJECT_ROOT / "conf" / "env").glob("*.yaml")}
 STUDIES = {path.stem for path in (PROJECT_ROOT / "conf" / "ab").glob("*.yaml")}
 MAKEFILE = (PROJECT_ROOT / "Makefile").read_text()
 #: the targets `make help` lists: those with a `## ` summary in the Makefile
-MAKE_SUMMARIES = dict(re.findall(r"^([a-zA-Z_-]+):.*?## (.*)$", MAKEFILE, re.M))
+MAKE_SUMMARIES = dict(re.findall(r"^([a-zA-Z0-9_-]+):.*?## (.*)$", MAKEFILE, re.M))
 MAKE_TARGETS = list(MAKE_SUMMARIES)
 NUMBER_WORDS = {3: "three", 4: "four", 5: "five", 6: "six", 7: "seven", 8: "eight", 9: "nine"}
 

@@ -291,6 +291,9 @@ def contenders(only: str | None = None, population: tuple[int, ...] = (2, 4)) ->
         ),
         "walkers DDPG": lambda: WalkersLoop(DDPG, hidden_sizes=[HIDDEN, HIDDEN], **common),
         "walkers SAC": lambda: WalkersLoop(SAC, hidden_sizes=[HIDDEN, HIDDEN], **common),
+        "walkers SAC compile": lambda: WalkersLoop(
+            SAC, hidden_sizes=[HIDDEN, HIDDEN], compile=True, **common
+        ),
         "walkers TD7": lambda: WalkersLoop(TD7, hidden_sizes=[HIDDEN, HIDDEN], **common),
         **{f"walkers CrossQ {width}": partial(walkers_crossq, width) for width in CROSSQ_WIDTHS},
         "walkers REINFORCE": lambda: WalkersLoop(Reinforce, hidden_sizes=[HIDDEN, HIDDEN]),

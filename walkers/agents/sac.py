@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 from walkers.agents.common.actor_critic import ActorCritic, frozen, logged
+from walkers.agents.common.functional import GradientOf, guarded_adam_step
 from walkers.agents.common.health import skip_nonfinite
 from walkers.agents.common.networks import EnsembleGaussianActor, Temperature, soft_update
 from walkers.agents.common.noise import GaussianNoise
@@ -121,6 +122,8 @@ class SAC(SoftActorCritic):
         b = self.sample()
         next_eps = self.noise_like(b.action)  # a' ~ pi(.|s'), for the target
         eps = self.noise_like(b.action)  # a ~ pi(.|s), for the actor's loss
+        if self.compiled_steps is not None:  # compile=true on the CPU: the steps below, whole
+            return self.compiled_steps(b, next_eps, eps)
 
         critic_loss, q_mean = self.critic_loss(b, next_eps)
         self.critic_optimizer.zero_grad(set_to_none=True)
@@ -149,6 +152,39 @@ class SAC(SoftActorCritic):
             **self.entropy_metrics(alpha_loss, self.temperature(), log_pi),
         }
         return metrics | self.record_health(critic_skipped, delayed_bad=actor_skipped)
+
+    def functional_steps(
+        self, b: Batch, next_eps: torch.Tensor, eps: torch.Tensor
+    ) -> dict[str, torch.Tensor]:
+        """:meth:`update`'s steps after its draws, functional (``compile=true`` on the CPU)."""
+        grads, (critic_loss, q_mean) = self.critic_gradient(b, next_eps)
+        critic_skipped = guarded_adam_step(
+            self.critic_optimizer, grads, critic_loss, self.num_critics
+        )
+        grads, (actor_loss, log_pi) = self.actor_gradient(b.obs, eps)
+        actor_skipped = guarded_adam_step(
+            self.actor_optimizer, grads, actor_loss, also_skip=critic_skipped
+        )
+        grads, (alpha_loss,) = self.temperature_gradient(log_pi)
+        guarded_adam_step(self.alpha_optimizer, grads, alpha_loss, also_skip=actor_skipped)
+
+        soft_update(self.critic_target, self.critic, self.tau)
+        metrics = {
+            "loss/critic": logged(critic_loss),
+            "train/q_mean": logged(q_mean),
+            "loss/actor": logged(actor_loss),
+            **self.entropy_metrics(alpha_loss, self.temperature(), log_pi),
+        }
+        return metrics | self.record_health(critic_skipped, delayed_bad=actor_skipped)
+
+    def functional_gradients(self) -> dict[str, GradientOf]:
+        return {
+            "critic_gradient": GradientOf(self.critic, self.critic_loss),
+            "actor_gradient": GradientOf(self.actor, self.actor_loss),
+            "temperature_gradient": GradientOf(
+                self.temperature, lambda log_pi: (self.temperature_loss(log_pi),)
+            ),
+        }
 
     def critic_loss(self, b: Batch, noise: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Per member ``(K,)``: J_Q = 1/2 sum_j N^-1 sum (y - Q_j(s, a))^2 with the soft target

@@ -27,19 +27,15 @@ whole (:mod:`walkers.agents.common.functional`; the same math, rounded otherwise
 
 from __future__ import annotations
 
-import logging
-
 import numpy as np
 import torch
 
 from walkers.agents.common.actor_critic import ActorCritic, frozen, logged
-from walkers.agents.common.functional import GradientOf, adam_state, guarded_adam_step
+from walkers.agents.common.functional import GradientOf, guarded_adam_step
 from walkers.agents.common.health import skip_nonfinite
 from walkers.agents.common.networks import soft_update
 from walkers.agents.common.noise import NOISE_TYPES, GaussianNoise
 from walkers.data.replay import Batch
-
-log = logging.getLogger("walkers")
 
 
 class TD3(ActorCritic):
@@ -177,24 +173,11 @@ class TD3(ActorCritic):
             metrics["loss/actor"] = logged(actor_loss)
         return metrics | self.record_health(critic_skipped, delayed_bad=actor_skipped)
 
-    def compile_update(self) -> None:
-        """``compile=true`` on the CPU compiles :meth:`functional_steps` (the whole update but
-        its draws); elsewhere the core's (the losses, or CUDA graphs)."""
-        self.compiled_steps = None
-        if self.compile and self.device.type == "cpu":
-            self.critic_gradient = GradientOf(self.critic, self.critic_loss)
-            self.actor_gradient = GradientOf(self.actor, lambda b: (self.actor_loss(b),))
-            for optimizer in (self.critic_optimizer, self.actor_optimizer):
-                adam_state(optimizer)  # made now: the compiled steps update it in place
-            # Dynamo compiles anew for each agent (its guards hold the agent's objects) and
-            # runs eagerly, silently, past its limit of 8 compilations of one function, which
-            # a process that trains agent after agent (a multirun's jobs in turn) would reach:
-            # each compiled agent starts from empty caches (one agent trains at a time).
-            torch.compiler.reset()
-            self.compiled_steps = torch.compile(self.functional_steps, fullgraph=True)
-            log.info("compile=true: the update is compiled at its first run (20-30 s on a CPU)")
-        else:
-            super().compile_update()
+    def functional_gradients(self) -> dict[str, GradientOf]:
+        return {
+            "critic_gradient": GradientOf(self.critic, self.critic_loss),
+            "actor_gradient": GradientOf(self.actor, lambda b: (self.actor_loss(b),)),
+        }
 
     def critic_loss(
         self, b: Batch, smoothing_noise: torch.Tensor | None

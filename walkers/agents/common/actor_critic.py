@@ -42,6 +42,7 @@ from torch import nn
 from walkers.agents.base import Agent, Transition, resolve_device
 from walkers.agents.common.capture import CapturedUpdate
 from walkers.agents.common.checkpointing import MemberCheckpoints
+from walkers.agents.common.functional import GradientOf, adam_state
 from walkers.agents.common.health import NonFiniteGuard
 from walkers.agents.common.networks import EnsembleActor, make_critic
 from walkers.agents.common.noise import GaussianNoise
@@ -227,19 +228,48 @@ class ActorCritic(MemberCheckpoints, Agent):
 
     def compile_update(self) -> None:
         """``capture=True`` on CUDA: the whole :meth:`update` as CUDA graphs
-        (:class:`~walkers.agents.common.capture.CapturedUpdate`). ``compile=True``: the loss
-        computations (:attr:`compiled_losses`), forward and backward, through ``torch.compile``
-        (fused elementwise work, less dispatch); on CUDA with CUDA graphs (``reduce-overhead``),
-        where a small update is launch-bound. The optimizer steps stay eager there: fused Adam
-        is one kernel already and keeps the NaN guard's step skip."""
+        (:class:`~walkers.agents.common.capture.CapturedUpdate`). ``compile=True`` on the CPU,
+        where the algorithm writes its steps functionally (:meth:`functional_gradients`): those
+        steps, whole, through ``torch.compile`` (:mod:`walkers.agents.common.functional`);
+        otherwise the loss computations (:attr:`compiled_losses`), forward and backward, on
+        CUDA with CUDA graphs (``reduce-overhead``), where a small update is launch-bound. The
+        optimizer steps stay eager there: fused Adam is one kernel already and keeps the NaN
+        guard's step skip."""
+        self.compiled_steps = None
         if self.capture:
             step = self.captured_step
             setattr(self, step, CapturedUpdate(self, getattr(self, step)))
         if not self.compile:
             return
+        gradients = self.functional_gradients() if self.device.type == "cpu" else None
+        if gradients:
+            vars(self).update(gradients)
+            for part in list(vars(self).values()):
+                if isinstance(part, torch.optim.Optimizer):
+                    adam_state(part)  # made now: the compiled steps update it in place
+            # Dynamo compiles anew for each agent (its guards hold the agent's objects) and
+            # stops compiling a function after 8, which a process that trains agent after agent
+            # (a multirun's jobs in turn) would reach: each compiled agent starts from empty
+            # caches (one agent trains at a time).
+            torch.compiler.reset()
+            self.compiled_steps = torch.compile(self.functional_steps, fullgraph=True)
+            log.info("compile=true: the update is compiled at its first run (20-30 s on a CPU)")
+            return
         mode = "reduce-overhead" if self.device.type == "cuda" else None
         for name in self.compiled_losses:
             setattr(self, name, torch.compile(getattr(self, name), mode=mode))
+
+    def functional_gradients(self) -> dict[str, GradientOf] | None:
+        """The gradients :meth:`functional_steps` takes, by the attribute it reads them from
+        (``{"critic_gradient": GradientOf(self.critic, self.critic_loss), ...}``), for an
+        algorithm whose update has a functional form; None (the default): it has none."""
+        return None
+
+    def functional_steps(self, *draws) -> dict[str, torch.Tensor]:
+        """:meth:`update`'s steps after its draws (the batch, the noise), with the gradients of
+        :meth:`functional_gradients` and Adam and the guard as tensor ops, for
+        ``torch.compile`` to take whole (``compile=true`` on the CPU)."""
+        raise NotImplementedError
 
     # --- acting: one observation and one transition per member, in member order --------------
     def act_population(self, obs: np.ndarray, explore: bool) -> np.ndarray:

@@ -41,9 +41,9 @@ ACTIVATION_NAMES = ("tanh", "relu")
 PRECISION_NAMES = ("fp32", "bf16")
 
 COMPILE_DOC = (
-    "torch.compile: on CPU TD3's and DDPG's whole update (1.3x, make bench),\n"
-    "the other algorithms' losses (no gain); on CUDA the losses with CUDA\n"
-    "graphs. Floats rounded otherwise than eager: an arm of its own"
+    "torch.compile: on CPU the whole update of TD3, DDPG and SAC (1.2-1.3x,\n"
+    "docs/speed.md), the losses of the others (no gain); on CUDA the losses\n"
+    "with CUDA graphs. Floats rounded otherwise than eager: an arm of its own"
 )
 CAPTURE_DOC = (
     "the whole update (sampling, losses, backward, optimizer steps, guard,\n"

@@ -21,11 +21,13 @@ maximum-entropy parts:
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import torch
 
 from walkers.agents.common.actor_critic import ActorCritic, frozen, logged
-from walkers.agents.common.functional import GradientOf, guarded_adam_step
+from walkers.agents.common.functional import gradient_of, guarded_adam_step
 from walkers.agents.common.health import skip_nonfinite
 from walkers.agents.common.networks import EnsembleGaussianActor, Temperature, soft_update
 from walkers.agents.common.noise import GaussianNoise
@@ -177,11 +179,11 @@ class SAC(SoftActorCritic):
         }
         return metrics | self.record_health(critic_skipped, delayed_bad=actor_skipped)
 
-    def functional_gradients(self) -> dict[str, GradientOf]:
+    def functional_gradients(self) -> dict[str, Callable]:
         return {
-            "critic_gradient": GradientOf(self.critic, self.critic_loss),
-            "actor_gradient": GradientOf(self.actor, self.actor_loss),
-            "temperature_gradient": GradientOf(
+            "critic_gradient": gradient_of(self.critic, self.critic_loss),
+            "actor_gradient": gradient_of(self.actor, self.actor_loss),
+            "temperature_gradient": gradient_of(
                 self.temperature, lambda log_pi: (self.temperature_loss(log_pi),)
             ),
         }

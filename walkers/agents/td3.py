@@ -27,11 +27,13 @@ whole (:mod:`walkers.agents.common.functional`; the same math, rounded otherwise
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import torch
 
 from walkers.agents.common.actor_critic import ActorCritic, frozen, logged
-from walkers.agents.common.functional import GradientOf, guarded_adam_step
+from walkers.agents.common.functional import gradient_of, guarded_adam_step
 from walkers.agents.common.health import skip_nonfinite
 from walkers.agents.common.networks import soft_update
 from walkers.agents.common.noise import NOISE_TYPES, GaussianNoise
@@ -173,10 +175,10 @@ class TD3(ActorCritic):
             metrics["loss/actor"] = logged(actor_loss)
         return metrics | self.record_health(critic_skipped, delayed_bad=actor_skipped)
 
-    def functional_gradients(self) -> dict[str, GradientOf]:
+    def functional_gradients(self) -> dict[str, Callable]:
         return {
-            "critic_gradient": GradientOf(self.critic, self.critic_loss),
-            "actor_gradient": GradientOf(self.actor, lambda b: (self.actor_loss(b),)),
+            "critic_gradient": gradient_of(self.critic, self.critic_loss),
+            "actor_gradient": gradient_of(self.actor, lambda b: (self.actor_loss(b),)),
         }
 
     def critic_loss(

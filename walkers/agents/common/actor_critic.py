@@ -42,7 +42,7 @@ from torch import nn
 from walkers.agents.base import Agent, Transition, resolve_device
 from walkers.agents.common.capture import CapturedUpdate
 from walkers.agents.common.checkpointing import MemberCheckpoints
-from walkers.agents.common.functional import GradientOf, adam_state
+from walkers.agents.common.functional import adam_state
 from walkers.agents.common.health import NonFiniteGuard
 from walkers.agents.common.networks import EnsembleActor, make_critic
 from walkers.agents.common.noise import GaussianNoise
@@ -259,9 +259,9 @@ class ActorCritic(MemberCheckpoints, Agent):
         for name in self.compiled_losses:
             setattr(self, name, torch.compile(getattr(self, name), mode=mode))
 
-    def functional_gradients(self) -> dict[str, GradientOf] | None:
+    def functional_gradients(self) -> dict[str, Callable] | None:
         """The gradients :meth:`functional_steps` takes, by the attribute it reads them from
-        (``{"critic_gradient": GradientOf(self.critic, self.critic_loss), ...}``), for an
+        (``{"critic_gradient": gradient_of(self.critic, self.critic_loss), ...}``), for an
         algorithm whose update has a functional form; None (the default): it has none."""
         return None
 

@@ -12,7 +12,7 @@ an update is one graph per way through it (TD3: with and without the delayed ste
 Inductor fuses into a few loops.
 
 The pieces keep the eager update's state and meaning: the gradients are of the algorithm's own
-loss methods (:func:`loss_and_gradients`), the Adam moments and step counts are the optimizer's
+loss methods (:func:`gradient_of`), the Adam moments and step counts are the optimizer's
 own ``state`` tensors (checkpoints are the same), and :func:`guarded_adam_step` skips exactly
 what :func:`~walkers.agents.common.health.skip_nonfinite` and fused Adam's ``found_inf`` skip.
 The numbers are the eager update's to float32 rounding, not bit for bit: Inductor sums in other
@@ -41,28 +41,28 @@ class _Loss(nn.Module):
         return self.loss(*args)
 
 
-class GradientOf:
+def gradient_of(
+    network: nn.Module, loss: Callable[..., tuple]
+) -> Callable[..., tuple[list[torch.Tensor], tuple]]:
     """The gradient of an algorithm's loss method with respect to one network's parameters:
-    ``GradientOf(network, loss)(*args)`` is ``(gradients, loss(*args))``, the gradients in the
+    ``gradient_of(network, loss)(*args)`` is ``(gradients, loss(*args))``, the gradients in the
     order of ``network.parameters()``, of the sum of the per-member loss ``loss(*args)[0]``
     (members' losses are independent, so each member's gradient is its own). The loss method
     reads the network as it always does: :func:`torch.func.functional_call` swaps its
     parameters for the call. Every other tensor the loss reads is a constant, as a frozen
     network is to ``backward()``. Built once, outside the compiled update."""
+    module = _Loss(network, loss)
 
-    def __init__(self, network: nn.Module, loss: Callable[..., tuple]):
-        self.module = _Loss(network, loss)
-
-    def __call__(self, *args) -> tuple[list[torch.Tensor], tuple]:
+    def gradient(*args) -> tuple[list[torch.Tensor], tuple]:
         def summed(params):
-            out = torch.func.functional_call(self.module, params, args)
+            out = torch.func.functional_call(module, params, args)
             return out[0].sum(), out
 
-        params = {
-            f"network.{name}": p.detach() for name, p in self.module.network.named_parameters()
-        }
+        params = {f"network.{name}": p.detach() for name, p in network.named_parameters()}
         grads, out = torch.func.grad(summed, has_aux=True)(params)
         return list(grads.values()), out
+
+    return gradient
 
 
 def adam_state(optimizer: torch.optim.Optimizer) -> list[tuple[torch.Tensor, dict]]:

@@ -146,14 +146,9 @@ class SAC(SoftActorCritic):
         skip_nonfinite(self.alpha_optimizer, alpha_loss, also_skip=actor_skipped)
         self.alpha_optimizer.step()
 
-        soft_update(self.critic_target, self.critic, self.tau)
-        metrics = {
-            "loss/critic": logged(critic_loss),
-            "train/q_mean": logged(q_mean),
-            "loss/actor": logged(actor_loss),
-            **self.entropy_metrics(alpha_loss, self.temperature(), log_pi),
-        }
-        return metrics | self.record_health(critic_skipped, delayed_bad=actor_skipped)
+        return self.soft_update_and_metrics(
+            critic_loss, q_mean, actor_loss, alpha_loss, log_pi, critic_skipped, actor_skipped
+        )
 
     def functional_steps(
         self, b: Batch, next_eps: torch.Tensor, eps: torch.Tensor
@@ -170,6 +165,14 @@ class SAC(SoftActorCritic):
         grads, (alpha_loss,) = self.temperature_gradient(log_pi)
         guarded_adam_step(self.alpha_optimizer, grads, alpha_loss, also_skip=actor_skipped)
 
+        return self.soft_update_and_metrics(
+            critic_loss, q_mean, actor_loss, alpha_loss, log_pi, critic_skipped, actor_skipped
+        )
+
+    def soft_update_and_metrics(
+        self, critic_loss, q_mean, actor_loss, alpha_loss, log_pi, critic_skipped, actor_skipped
+    ) -> dict[str, torch.Tensor]:
+        """The update's last step, the target critics' soft update, and its metrics."""
         soft_update(self.critic_target, self.critic, self.tau)
         metrics = {
             "loss/critic": logged(critic_loss),

@@ -315,6 +315,9 @@ def contenders(only: str | None = None, population: tuple[int, ...] = (2, 4)) ->
                 "2 procs x TD3 K=2": lambda: ParallelLoops(
                     2, k=2, hidden_sizes=[HIDDEN, HIDDEN], **common
                 ),
+                "2 procs x TD3 compile": lambda: ParallelLoops(
+                    2, hidden_sizes=[HIDDEN, HIDDEN], compile=True, **common
+                ),
             }
     else:  # on a GPU the paper's CrossQ width, K seeds at a time; whole updates captured
         loops |= {f"walkers CrossQ 2048 K={k}": partial(crossq_population, k) for k in population}

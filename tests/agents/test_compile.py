@@ -6,6 +6,8 @@ update equals the eager one is tested for every algorithm that declares ``compil
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 import pytest
 
@@ -15,10 +17,13 @@ from walkers.train import train
 from walkers.training import checkpoints
 
 
-def test_compiled_ddpg_trains_through_the_entrypoint_and_continues(store):
+def test_compiled_ddpg_trains_through_the_entrypoint_and_continues(store, caplog):
     overrides = ["algo=ddpg", "env=pendulum", "algo.compile=true", "algo.hidden_sizes=[32,32]"]
     overrides += ["algo.learning_starts=200", "algo.batch_size=64", *TINY, *store["overrides"]]
-    train(compose_cfg(overrides))
+    with caplog.at_level(logging.INFO, logger="walkers"):
+        train(compose_cfg(overrides))
+    said = [r.getMessage() for r in caplog.records if "compiling the update" in r.getMessage()]
+    assert len(said) == 1  # the wait at the first update is said, once
     (run,) = all_runs(store["client"])
     assert run.info.status == "FINISHED"
     assert run.data.params["algo.compile"] == "True"

@@ -252,8 +252,14 @@ class ActorCritic(MemberCheckpoints, Agent):
             # (a multirun's jobs in turn) would reach: each compiled agent starts from empty
             # caches (one agent trains at a time).
             torch.compiler.reset()
-            self.compiled_steps = torch.compile(self.functional_steps, fullgraph=True)
-            log.info("compile=true: the update is compiled at its first run (20-30 s on a CPU)")
+            compiled = torch.compile(self.functional_steps, fullgraph=True)
+
+            def first(*draws):  # said when it happens (an agent that only acts never compiles)
+                log.info("compile=true: compiling the update (20-30 s on a CPU, once a process)")
+                self.compiled_steps = compiled
+                return compiled(*draws)
+
+            self.compiled_steps = first
             return
         mode = "reduce-overhead" if self.device.type == "cuda" else None
         for name in self.compiled_losses:

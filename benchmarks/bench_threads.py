@@ -8,7 +8,8 @@ temporary folder) of ``--algos`` on Walker2d-v5 with a short warm-up; its learni
 the median of the ``perf/sps`` it logged (env steps/s since the previous log) once learning had
 run for one log window. Settings: ``torch_threads`` 1, 2 and all cores (``null``: torch's own
 default), each also with OpenMP told not to spin (``OMP_WAIT_POLICY=PASSIVE``), and walkers'
-default (``auto``, whatever ``conf/train.yaml`` says today). Conditions: ``idle`` (nothing else
+default (``auto``, whatever ``conf/train.yaml`` says today), and for TD3 and SAC one thread with
+the whole update compiled (``algo.compile=true``). Conditions: ``idle`` (nothing else
 of ours runs) and ``1 core busy`` (a plain Python busy loop at normal priority for the whole
 measurement, as a laptop's browser or a second job). Contenders take turns within a condition,
 so noise hits all alike; the table gives each one's median and its ratio to the best setting in
@@ -38,14 +39,20 @@ RUNS = {
 LOG_EVERY = {"td3": 250, "sac": 250, "ppo": 2048}
 
 
-def settings(cores: int) -> dict[str, tuple[str, dict]]:
-    """Name -> (torch_threads override, extra environment)."""
+#: the algorithms whose whole update ``algo.compile=true`` compiles on the CPU
+COMPILED = ("td3", "sac")
+
+
+def settings(cores: int, algo: str) -> dict[str, tuple[str, dict]]:
+    """Name -> (overrides: torch_threads and others, extra environment)."""
     passive = {"OMP_WAIT_POLICY": "PASSIVE"}
     rows = {
         "default (as conf/train.yaml)": ("", {}),
         "1 thread": ("torch_threads=1", {}),
         "1 thread, passive": ("torch_threads=1", passive),
     }
+    if algo in COMPILED:  # the same thread, the whole update compiled (an arm of its own)
+        rows["1 thread, algo.compile=true"] = ("torch_threads=1 algo.compile=true", {})
     for n in sorted({2, cores}):
         name = "all cores" if n == cores else f"{n} threads"
         rows[f"{name} ({n})"] = (f"torch_threads={n}", {})
@@ -61,7 +68,7 @@ def learning_rate(algo: str, threads: str, env: dict, folder: Path) -> float:
         f"algo={algo}", "env=walker2d", f"total_steps={total}", f"eval_every={total}",
         "eval_episodes=1", f"checkpoint_every={total}", f"log_every={LOG_EVERY[algo]}",
         "progress=false", f"tracking.uri=sqlite:///{store}", f"work_dir={folder / 'work'}",
-        "tracking.system_metrics=false", *filter(None, (warmup, threads)),
+        "tracking.system_metrics=false", *filter(None, (warmup, *threads.split())),
     ]  # fmt: skip
     run_env = {**os.environ, **env}
     run_env.pop("MLFLOW_TRACKING_URI", None)
@@ -98,9 +105,9 @@ def main() -> None:
     parser.add_argument("--only", default="", help="run only the settings whose name has this")
     args = parser.parse_args()
     cores = os.cpu_count() or 1
-    rows = {k: v for k, v in settings(cores).items() if args.only in k}
     print(f"{cores} cores; env steps/s in the learning phase, median of {args.reps} runs each")
     for algo in args.algos.split(","):
+        rows = {k: v for k, v in settings(cores, algo).items() if args.only in k}
         table = {}
         for condition, busy in (("idle", False), ("1 core busy", True)):
             with tempfile.TemporaryDirectory() as tmp, busy_core(busy):

@@ -26,7 +26,7 @@ from collections.abc import Callable
 import torch
 from torch import nn
 
-from walkers.agents.common.health import NonFiniteGuard, _bad_member_gradients, _not_finite
+from walkers.agents.common.health import bad_members
 from walkers.agents.common.population import ADAM_MOMENTS
 
 
@@ -92,14 +92,7 @@ def guarded_adam_step(
     zeroed, and the step (moments, step count, weights) is not taken when every member is bad.
     Adam as in Kingma and Ba (2015), Algorithm 1, with the optimizer's ``lr``, ``betas`` and
     ``eps``. Returns the skipped members ``(K,)`` (1.0 skipped)."""
-    members = member_loss.numel()
-    if members == 1:  # one agent: the total norm is finite or not, as skip_nonfinite's
-        bad_grads = _not_finite(torch.nn.utils.get_total_norm(grads)).view(1)
-    else:
-        bad_grads = _bad_member_gradients(grads, members)
-    bad = torch.maximum(NonFiniteGuard.bad_members(member_loss.view(-1)), bad_grads)
-    if also_skip is not None:
-        bad = torch.maximum(bad, also_skip)
+    bad = bad_members(grads, member_loss, also_skip)  # as skip_nonfinite's
     skip = (bad > 0).repeat_interleave(copies)
     take = bad.min() == 0  # found_inf: no step at all when every member is bad
     group = optimizer.param_groups[0]

@@ -4,7 +4,9 @@ An optimizer step whose loss or gradient is not finite is skipped and the update
 agent calls the guard where it takes the step, between ``backward()`` and ``step()``:
 :func:`skip_nonfinite` (per-member losses: a population's members, each skipped on its own) or
 :func:`clip_or_skip` (one agent's scalar loss, with gradient clipping). They set the fused
-optimizer's ``found_inf``, which makes its step a no-op, here and nowhere else.
+optimizer's ``found_inf``, which makes its step a no-op, here and nowhere else; an update
+compiled on the CPU skips the same members (:func:`bad_members`) in its own Adam step
+(:func:`walkers.agents.common.functional.guarded_adam_step`).
 Checks and counts are device tensors, so the guard adds no host-device sync to the hot loop; the
 trainer reads ``health/*`` only when it logs, and ends a run whose updates have all been skipped
 for too long (:class:`walkers.training.bookkeeping.TrainingDiverged`).
@@ -96,15 +98,11 @@ def skip_nonfinite(
     kind that reads ``found_inf``. Returns the skipped members ``(K,)`` (1.0 skipped, 0.0 taken).
     """
     grads = _gradients(optimizer)
-    members = member_loss.numel()
-    if members == 1:  # one agent: the total norm (fused over all gradients) is finite or not
-        bad_grads = _not_finite(torch.nn.utils.get_total_norm(grads)).view(1)
-    else:
-        bad_grads = _bad_member_gradients(grads, members)
-    bad = _skip(optimizer, member_loss, bad_grads, also_skip)
+    bad = bad_members(grads, member_loss, also_skip)
+    optimizer.found_inf = bad.min()  # the fused step is a no-op when every member is bad
     # one agent: found_inf skips the step already; on a CPU, reading ``bad`` costs no sync, and
     # a population whose members are all good (nearly every update) has nothing to zero
-    if members > 1 and (grads[0].device.type != "cpu" or bool(bad.any())):
+    if member_loss.numel() > 1 and (grads[0].device.type != "cpu" or bool(bad.any())):
         skip = (bad > 0).repeat_interleave(copies)
         for grad in grads:  # members lead every parameter's dimensions
             grad.masked_fill_(skip.view(-1, *(1,) * (grad.dim() - 1)), 0.0)
@@ -121,8 +119,26 @@ def clip_or_skip(
     grad_norm = torch.nn.utils.get_total_norm(_gradients(optimizer))
     if max_grad_norm is not None:  # what clip_grad_norm_ does, reusing the norm
         torch.nn.utils.clip_grads_with_norm_(params, max_grad_norm, grad_norm)
-    bad = _skip(optimizer, loss, _not_finite(grad_norm).view(1), None)
+    bad = torch.maximum(NonFiniteGuard.bad_members(loss.view(-1)), _not_finite(grad_norm).view(1))
+    optimizer.found_inf = bad.min()  # the fused step is a no-op when the agent is bad
     return GuardedStep(bad.view(loss.shape), grad_norm)
+
+
+def bad_members(
+    grads: list[torch.Tensor], member_loss: torch.Tensor, also_skip: torch.Tensor | None = None
+) -> torch.Tensor:
+    """The members ``(K,)`` to skip (1.0) for per-member losses ``(K,)`` and their gradients:
+    a NaN/inf loss or gradient, or ``also_skip``. One agent: the total norm (fused over all
+    gradients) is finite or not; a population: each member's gradient sums."""
+    members = member_loss.numel()
+    if members == 1:
+        bad_grads = _not_finite(torch.nn.utils.get_total_norm(grads)).view(1)
+    else:
+        bad_grads = _bad_member_gradients(grads, members)
+    bad = torch.maximum(NonFiniteGuard.bad_members(member_loss.view(-1)), bad_grads)
+    if also_skip is not None:
+        bad = torch.maximum(bad, also_skip)
+    return bad
 
 
 def _gradients(optimizer: torch.optim.Optimizer) -> list[torch.Tensor]:
@@ -133,21 +149,6 @@ def _gradients(optimizer: torch.optim.Optimizer) -> list[torch.Tensor]:
 
 def _not_finite(x: torch.Tensor) -> torch.Tensor:
     return (~torch.isfinite(x)).to(torch.float32)
-
-
-def _skip(
-    optimizer: torch.optim.Optimizer,
-    loss: torch.Tensor,
-    bad_grads: torch.Tensor,
-    also_skip: torch.Tensor | None,
-) -> torch.Tensor:
-    """The members to skip (a bad loss, bad gradients, ``also_skip``), told to the fused
-    optimizer: ``found_inf`` makes its step a no-op when all are."""
-    bad = torch.maximum(NonFiniteGuard.bad_members(loss.view(-1)), bad_grads)
-    if also_skip is not None:
-        bad = torch.maximum(bad, also_skip)
-    optimizer.found_inf = bad.min()
-    return bad
 
 
 def _bad_member_gradients(grads: list[torch.Tensor], members: int) -> torch.Tensor:

@@ -26,7 +26,7 @@ from collections.abc import Callable
 import torch
 from torch import nn
 
-from walkers.agents.common.health import bad_members
+from walkers.agents.common.health import skipped_members
 from walkers.agents.common.population import ADAM_MOMENTS
 
 
@@ -92,7 +92,7 @@ def guarded_adam_step(
     zeroed, and the step (moments, step count, weights) is not taken when every member is bad.
     Adam as in Kingma and Ba (2015), Algorithm 1, with the optimizer's ``lr``, ``betas`` and
     ``eps``. Returns the skipped members ``(K,)`` (1.0 skipped)."""
-    bad = bad_members(grads, member_loss, also_skip)  # as skip_nonfinite's
+    bad = skipped_members(grads, member_loss, also_skip)  # as skip_nonfinite's
     skip = (bad > 0).repeat_interleave(copies)
     take = bad.min() == 0  # found_inf: no step at all when every member is bad
     group = optimizer.param_groups[0]

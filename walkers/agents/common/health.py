@@ -5,7 +5,7 @@ agent calls the guard where it takes the step, between ``backward()`` and ``step
 :func:`skip_nonfinite` (per-member losses: a population's members, each skipped on its own) or
 :func:`clip_or_skip` (one agent's scalar loss, with gradient clipping). They set the fused
 optimizer's ``found_inf``, which makes its step a no-op, here and nowhere else; an update
-compiled on the CPU skips the same members (:func:`bad_members`) in its own Adam step
+compiled on the CPU skips the same members (:func:`skipped_members`) in its own Adam step
 (:func:`walkers.agents.common.functional.guarded_adam_step`).
 Checks and counts are device tensors, so the guard adds no host-device sync to the hot loop; the
 trainer reads ``health/*`` only when it logs, and ends a run whose updates have all been skipped
@@ -98,7 +98,7 @@ def skip_nonfinite(
     kind that reads ``found_inf``. Returns the skipped members ``(K,)`` (1.0 skipped, 0.0 taken).
     """
     grads = _gradients(optimizer)
-    bad = bad_members(grads, member_loss, also_skip)
+    bad = skipped_members(grads, member_loss, also_skip)
     optimizer.found_inf = bad.min()  # the fused step is a no-op when every member is bad
     # one agent: found_inf skips the step already; on a CPU, reading ``bad`` costs no sync, and
     # a population whose members are all good (nearly every update) has nothing to zero
@@ -124,7 +124,7 @@ def clip_or_skip(
     return GuardedStep(bad.view(loss.shape), grad_norm)
 
 
-def bad_members(
+def skipped_members(
     grads: list[torch.Tensor], member_loss: torch.Tensor, also_skip: torch.Tensor | None = None
 ) -> torch.Tensor:
     """The members ``(K,)`` to skip (1.0) for per-member losses ``(K,)`` and their gradients:

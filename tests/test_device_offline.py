@@ -40,7 +40,7 @@ def minari_path(tmp_path):
     return path
 
 
-def run_script(tmp_path, minari_path, deadline: int = 400):
+def run_script(tmp_path, minari_path, deadline: int = 400, steps: int = STEPS):
     return run_device_script(
         "device_offline.sh",
         tmp_path,
@@ -48,7 +48,7 @@ def run_script(tmp_path, minari_path, deadline: int = 400):
         DATASET=DATASET,
         ENV="pendulum",
         SEEDS="0,1",
-        ARMS=" ".join(f"{algo}:{STEPS}" for algo in ALGOS),
+        ARMS=" ".join(f"{algo}:{steps}" for algo in ALGOS),
         EVERY=str(EVERY),
         EXPERIMENT="offline_pendulum",
         DEADLINE=str(deadline),
@@ -102,7 +102,9 @@ def test_the_finished_seeds_come_home_and_count_as_done_in_the_studys_store(tmp_
 
 
 def test_a_seed_stopped_at_the_deadline_stays_on_the_machine(tmp_path, minari_path):
-    done = run_script(tmp_path, minari_path, deadline=1)
+    # seeds far longer than the deadline, which lands in their training (or, on a slow machine,
+    # in their start)
+    done = run_script(tmp_path, minari_path, deadline=15, steps=1_000_000)
 
     assert done.returncode == 0, done.stdout + done.stderr
     assert "stopped at the deadline" in done.stdout

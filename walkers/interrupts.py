@@ -18,8 +18,11 @@ finalizer or a weakref callback run by the garbage collector (SQLAlchemy's, unde
 Python prints such a callback's exception ("Exception ignored in") and carries on, so the run
 trained on, deaf to further signals, until a supervisor's SIGKILL (seen: a run stopped by
 ``timeout -s INT`` 11 s after its start). :func:`_keep_a_swallowed_stop`, Python's unraisable
-hook while walkers' handler is installed, notes such a stop instead, and the next shielded
-block (every training step and store call is one) raises it at its end.
+hook while walkers' handler is installed, delivers such a stop again once the main thread has
+left the callback: raised there, or at the end of the training step or store call under way.
+(It once noted the stop for the next of those to raise, and a multirun's driver still importing
+its modules has none ahead before its jobs, other processes, train to their end: CI's 1 s
+deadline ended with a FINISHED run.)
 
 A Hydra config composition is the third place: a KeyboardInterrupt raised inside OmegaConf while
 it builds a node comes out as a ConfigCompositionException (OmegaConf wraps what its half-built
@@ -30,15 +33,17 @@ launchers (:mod:`walkers.plugins`).
 
 from __future__ import annotations
 
+import _thread
 import os
 import signal
 import sys
 import threading
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 
 _depth = 0  # shielded blocks open in the main thread (signals are handled there only)
-_noted: str | None = None  # the signal that arrived inside one, raised when the last one ends
+_noted: int | None = None  # the signal that arrived inside one, raised when the last one ends
 
 
 def shielding() -> bool:
@@ -46,10 +51,10 @@ def shielding() -> bool:
     return _depth > 0
 
 
-def note(reason: str) -> None:
+def note(signum: int) -> None:
     """Keep a stop that arrived inside a shielded block, for the block's end to raise."""
     global _noted
-    _noted = _noted or reason
+    _noted = _noted or signum
 
 
 def stop_noted() -> bool:
@@ -60,6 +65,10 @@ def stop_noted() -> bool:
 
 class StopSignal(KeyboardInterrupt):
     """The KeyboardInterrupt walkers raises for SIGINT and SIGTERM."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(f"signal {signum}")
+        self.signum = signum
 
 
 class RunsStopped(KeyboardInterrupt):
@@ -83,8 +92,8 @@ def shielded() -> Iterator[None]:
     finally:
         _depth -= 1
         if _depth == 0 and _noted is not None:
-            reason, _noted = _noted, None
-            raise StopSignal(reason)
+            signum, _noted = _noted, None
+            raise StopSignal(signum)
 
 
 class ShieldedConfigLoader:
@@ -126,12 +135,12 @@ class _Stopping:
         if not self.stopping:
             self.stopping = True
             if shielding():  # inside a training step or a store call: raised after it
-                note(f"signal {signum}")
+                note(signum)
                 # a step can hold an evaluation, which can take a while: say why we wait
                 name = signal.Signals(signum).name
                 os.write(2, f"stopping ({name}): the step under way ends first\n".encode())
                 return
-            raise StopSignal(f"signal {signum}")
+            raise StopSignal(signum)
         if not self.told:  # os.write: print() may be in progress in the interrupted frame
             self.told = True
             name = signal.Signals(signum).name
@@ -147,15 +156,23 @@ _STOPPING = _Stopping()
 
 def _keep_a_swallowed_stop(unraisable) -> None:
     """Python's unraisable hook under walkers' handler: a stop raised inside a finalizer or a
-    garbage-collection callback, which Python would print and drop, is noted to be raised at
-    the end of the next shielded block; anything else goes to the hook there was before."""
-    if isinstance(unraisable.exc_value, StopSignal):
-        note(str(unraisable.exc_value))
-        os.write(
-            2, b"stopping: the signal landed in a cleanup callback; the step under way ends first\n"
-        )
+    garbage-collection callback, which Python would print and drop, is delivered again once
+    the main thread has left it; anything else goes to the hook there was before."""
+    stop = unraisable.exc_value
+    if not isinstance(stop, StopSignal):
+        _hook_before(unraisable)
         return
-    _hook_before(unraisable)
+    handler = signal.getsignal(stop.signum)
+    if isinstance(handler, _Stopping):
+        handler.stopping = False  # the signal again is the first one, not a second
+    threading.Thread(target=_deliver_again, args=(stop.signum,), daemon=True).start()
+
+
+def _deliver_again(signum: int) -> None:
+    """The signal again, once the main thread has left the hook (a stop raised inside the hook
+    would be dropped too)."""
+    time.sleep(0.01)
+    _thread.interrupt_main(signum)
 
 
 _hook_before = sys.unraisablehook

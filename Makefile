@@ -106,6 +106,9 @@ study-bipedal: $(STAMP)  ## the tutorial's study, TD3 vs DDPG on BipedalWalker-v
 study-td3-compile: $(STAMP)  ## TD3 eager vs its CPU-compiled update on Walker2d (equal?), nice 19
 	$(call background_study,td3_compile)
 
+study-td3-bf16: $(STAMP)  ## TD3 eager vs compiled in bfloat16 on Walker2d (equal?), nice 19
+	$(call background_study,td3_bf16)
+
 compare: $(STAMP)  ## an A/B report from finished runs (ARGS="env=... algos=[...] ...")
 	$(PY) -m walkers.compare $(ARGS)
 
@@ -228,4 +231,4 @@ clean:  ## remove run outputs and caches; keeps .venv and optuna.db
 	rm -rf mlflow.db mlruns mlartifacts outputs multirun .walkers reports .pytest_cache .ruff_cache
 	find . -name __pycache__ -type d -prune -not -path './$(VENV)/*' -exec rm -rf {} +
 
-.PHONY: help install train ab ab-all study study-original study-bipedal study-td3-compile baseline baselines-gpu offline-gpu offline compare plan results docs dashboard bench-sequential ui-check test test-slow test-faults test-cluster chaos stack bench bench-profile bench-path bench-population bench-throughput bench-dt bench-learning bench-scale menus lint ui clean
+.PHONY: help install train ab ab-all study study-original study-bipedal study-td3-compile study-td3-bf16 baseline baselines-gpu offline-gpu offline compare plan results docs dashboard bench-sequential ui-check test test-slow test-faults test-cluster chaos stack bench bench-profile bench-path bench-population bench-throughput bench-dt bench-learning bench-scale menus lint ui clean

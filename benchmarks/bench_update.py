@@ -5,8 +5,9 @@
 
 Walker2d shapes (17-d observations, 6 actions), 256-256 networks, batch 256, fused Adam in all;
 walkers eager and with ``compile=True`` (its loss computations through torch.compile; CUDA
-graphs on a GPU), and on a GPU with ``capture=True`` (the whole update as CUDA graphs). The plain
-reference is the textbook layout: two separate critic modules,
+graphs on a GPU), and on a GPU with ``capture=True`` (the whole update as CUDA graphs); where
+bfloat16 is native (a GPU, a CPU with AMX or AVX-512 BF16) eager and compiled again with
+``precision=bf16``. The plain reference is the textbook layout: two separate critic modules,
 nn.Linear layers. Rounds alternate so machine noise hits all alike; the table reports medians
 and the ratio (below 1: walkers is faster). On the CPU a second table breaks the eager update
 down by kind of work. A benchmark, not a test: nothing here asserts on time.
@@ -25,7 +26,7 @@ from rounds import alternate, print_table
 from torch import nn
 from torch.nn import functional as F
 
-from walkers.agents.base import Transition
+from walkers.agents.base import Transition, cpu_has_native_bf16
 from walkers.agents.factory import defaults_for
 from walkers.agents.td3 import TD3
 
@@ -91,14 +92,21 @@ class PlainTD3Update:
                         tp.mul_(0.995).add_(p, alpha=0.005)
 
 
-def walkers_agent(device: torch.device, compile: bool = False, capture: bool = False) -> TD3:
+def walkers_agent(
+    device: torch.device, compile: bool = False, capture: bool = False, precision: str = "fp32"
+) -> TD3:
     agent = TD3(
         OBS,
         [-1.0] * ACT,
         [1.0] * ACT,
         device=str(device),
         **defaults_for(
-            TD3, learning_starts=0, buffer_size=CAPACITY, compile=compile, capture=capture
+            TD3,
+            learning_starts=0,
+            buffer_size=CAPACITY,
+            compile=compile,
+            capture=capture,
+            precision=precision,
         ),
     )
     rng = np.random.default_rng(0)
@@ -111,8 +119,10 @@ def walkers_agent(device: torch.device, compile: bool = False, capture: bool = F
     return agent
 
 
-def walkers_update(device: torch.device, compile: bool = False, capture: bool = False):
-    return walkers_agent(device, compile, capture).update
+def walkers_update(
+    device: torch.device, compile: bool = False, capture: bool = False, precision: str = "fp32"
+):
+    return walkers_agent(device, compile, capture, precision).update
 
 
 #: The phases of walkers' TD3 update, by the name the update calls them under (td3.py).
@@ -247,6 +257,9 @@ def main():
     }
     if device.type == "cuda":  # the whole update as CUDA graphs (algo.capture=true)
         contenders["walkers TD3 capture"] = walkers_update(device, capture=True)
+    if device.type == "cuda" or cpu_has_native_bf16():  # algo.precision=bf16: an arm of its own
+        contenders["walkers TD3 bf16"] = walkers_update(device, precision="bf16")
+        contenders["walkers TD3 compile bf16"] = walkers_update(device, True, precision="bf16")
     times = alternate(contenders, lambda fn: time_ms(fn, args.updates, device), args.reps)
     where = f"{torch.get_num_threads()} threads" if device.type == "cpu" else str(device)
     print(

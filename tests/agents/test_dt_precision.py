@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from tests.conftest import compose_cfg, tiny_offline_data
-from walkers.agents.common.transformer import cpu_has_native_bf16
+from walkers.agents.base import cpu_has_native_bf16
 from walkers.agents.dt import DecisionTransformer
 from walkers.agents.factory import defaults_for
 from walkers.errors import ConfigError

@@ -43,7 +43,8 @@ SETTINGS = {f.name: f for f in fields(RunSettings)}
         ("ddpg", "critic_architecture", "walkers.agents.common.networks.CRITIC_ARCHITECTURES"),
         ("ddpg", "noise_type", "walkers.agents.common.noise.NOISE_TYPES"),
         ("ppo", "activation", "walkers.agents.common.policies.ACTIVATIONS"),
-        ("dt", "precision", "walkers.agents.common.transformer.PRECISIONS"),
+        ("dt", "precision", "walkers.agents.base.PRECISIONS"),
+        ("td3", "precision", "walkers.agents.base.PRECISIONS"),
     ],
 )
 def test_a_menu_of_names_offers_what_the_code_builds(schema, key, built):

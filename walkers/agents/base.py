@@ -28,8 +28,10 @@ device sync; the trainer converts them only when it logs.
 
 from __future__ import annotations
 
+import logging
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -109,3 +111,44 @@ def resolve_device(device: str) -> torch.device:
     if device == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     return torch.device(device)
+
+
+#: ``algo.precision``: the dtype an agent's learning runs in under autocast (None: plain fp32)
+PRECISIONS = {"fp32": None, "bf16": torch.bfloat16}
+#: CPU flags of native bfloat16 matmuls (x86): without one, bf16 autocast is emulated and slow
+NATIVE_BF16_FLAGS = ("avx512_bf16", "amx_bf16")
+
+
+def autocast(device: torch.device, precision: str):
+    """The context an agent learns in: bfloat16 autocast for ``bf16`` (matmuls and attention in
+    bfloat16, reductions, LayerNorm, the weights and the optimizer in fp32), nothing for
+    ``fp32``."""
+    dtype = PRECISIONS[precision]
+    return torch.autocast(device.type, dtype=dtype or torch.float32, enabled=dtype is not None)
+
+
+def cpu_has_native_bf16(cpuinfo: str | None = None) -> bool | None:
+    """Whether this CPU multiplies bfloat16 natively (``/proc/cpuinfo``'s flags, or ``cpuinfo``
+    given); None where that cannot be told (not Linux, not x86)."""
+    if cpuinfo is None:
+        try:
+            cpuinfo = Path("/proc/cpuinfo").read_text()
+        except OSError:
+            return None
+    lines = [line for line in cpuinfo.splitlines() if line.startswith("flags")]
+    if not lines:  # not x86 (an ARM CPU lists "Features"): unknown here, so no warning
+        return None
+    flags = {f for line in lines for f in line.split()}
+    return any(flag in flags for flag in NATIVE_BF16_FLAGS)
+
+
+def warn_if_slow_precision(device: torch.device, precision: str) -> None:
+    """bf16 on a CPU without native bfloat16 matmuls is emulated: measured 10.7x slower a DT step
+    than fp32 on an AMD EPYC without AVX-512 BF16 (1.57x faster on one with it). Say so once,
+    at the start of the run, rather than let a user wait."""
+    if precision == "bf16" and device.type == "cpu" and cpu_has_native_bf16() is False:
+        logging.getLogger("walkers").warning(
+            "algo.precision=bf16 on a CPU without %s: bfloat16 is emulated here, about 10x "
+            "slower than fp32 (algo.precision=fp32)",
+            " or ".join(NATIVE_BF16_FLAGS),
+        )

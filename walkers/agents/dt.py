@@ -22,13 +22,9 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
-from walkers.agents.base import Agent, resolve_device
+from walkers.agents.base import Agent, autocast, resolve_device, warn_if_slow_precision
 from walkers.agents.common.health import NonFiniteGuard, clip_or_skip
-from walkers.agents.common.transformer import (
-    DecisionTransformerModel,
-    autocast,
-    warn_if_slow_precision,
-)
+from walkers.agents.common.transformer import DecisionTransformerModel
 from walkers.data.sequences import SequenceSampler
 from walkers.seeding import stream_seeds
 

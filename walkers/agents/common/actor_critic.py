@@ -39,7 +39,13 @@ import numpy as np
 import torch
 from torch import nn
 
-from walkers.agents.base import Agent, Transition, resolve_device
+from walkers.agents.base import (
+    Agent,
+    Transition,
+    autocast,
+    resolve_device,
+    warn_if_slow_precision,
+)
 from walkers.agents.common.capture import CapturedUpdate
 from walkers.agents.common.checkpointing import MemberCheckpoints
 from walkers.agents.common.functional import adam_state
@@ -95,10 +101,13 @@ class ActorCritic(MemberCheckpoints, Agent):
         population: int = 1,
         compile: bool,
         capture: bool | str,
+        precision: str | None = None,  # CrossQ and TD7 declare none: fp32
         device: str = "cpu",
         seed: int = 0,
     ):
         self.device = resolve_device(device)
+        self.precision = precision or "fp32"
+        warn_if_slow_precision(self.device, self.precision)
         self.batch_size, self.learning_starts = int(batch_size), int(learning_starts)
         self.gamma, self.tau = gamma, tau
         self.population, self.seed = int(population), seed
@@ -236,6 +245,14 @@ class ActorCritic(MemberCheckpoints, Agent):
         optimizer steps stay eager there: fused Adam is one kernel already and keeps the NaN
         guard's step skip."""
         self.compiled_steps = None
+        if self.precision != "fp32":  # the whole update under autocast, as capture and compile
+            update = self.update  # take it (they trace it inside the autocast)
+
+            def update_in_precision() -> dict[str, torch.Tensor]:
+                with autocast(self.device, self.precision):
+                    return update()
+
+            self.update = update_in_precision
         if self.capture:
             step = self.captured_step
             setattr(self, step, CapturedUpdate(self, getattr(self, step)))

@@ -36,14 +36,17 @@ class EnsembleLinear(nn.Module):
 
     Input ``(n, batch, in)``, or ``(batch, in)`` shared by all members; output ``(n, batch, out)``.
     ``members`` selects a subset (TD3's actor loss reads only the first critic). Initialised like
-    ``nn.Linear`` member by member.
+    ``nn.Linear`` member by member. A network's output layer (``head``) runs in fp32 under
+    bfloat16 autocast (``algo.precision=bf16``), so the losses read fp32 values (Q, actions,
+    SAC's mean and log-std): the hidden layers' matmuls in bfloat16, not the answer's rounding.
     """
 
-    def __init__(self, n: int, in_dim: int, out_dim: int):
+    def __init__(self, n: int, in_dim: int, out_dim: int, head: bool = False):
         super().__init__()
         bound = 1 / math.sqrt(in_dim)
         self.weight = nn.Parameter(torch.empty(n, in_dim, out_dim).uniform_(-bound, bound))
         self.bias = nn.Parameter(torch.empty(n, 1, out_dim).uniform_(-bound, bound))
+        self.head = head
 
     def forward(self, x: torch.Tensor, members: slice = ALL) -> torch.Tensor:
         # all members: the parameters themselves (an index would add a view and its backward)
@@ -54,6 +57,9 @@ class EnsembleLinear(nn.Module):
         )
         if x.dim() == 2:
             x = x.expand(weight.shape[0], *x.shape)
+        if self.head and torch.is_autocast_enabled(x.device.type):
+            with torch.autocast(x.device.type, enabled=False):
+                return torch.baddbmm(bias, x.float(), weight)
         return torch.baddbmm(bias, x, weight)
 
 
@@ -69,7 +75,8 @@ class EnsembleActor(nn.Module):
         super().__init__()
         dims = [obs_dim, *hidden_sizes, act_dim]
         self.layers = nn.ModuleList(
-            EnsembleLinear(n, a, b) for a, b in zip(dims[:-1], dims[1:], strict=True)
+            EnsembleLinear(n, a, b, head=i == len(dims) - 2)
+            for i, (a, b) in enumerate(zip(dims[:-1], dims[1:], strict=True))
         )
         low = torch.as_tensor(action_low, dtype=torch.float32)
         high = torch.as_tensor(action_high, dtype=torch.float32)
@@ -183,7 +190,7 @@ class MLPCriticEnsemble(nn.Module):
         self.hidden = nn.ModuleList(
             EnsembleLinear(n, a, b) for a, b in zip(dims[:-1], dims[1:], strict=True)
         )
-        self.out = EnsembleLinear(n, dims[-1], 1)
+        self.out = EnsembleLinear(n, dims[-1], 1, head=True)
 
     def forward(self, obs, action, members: slice = slice(None)) -> torch.Tensor:
         x = torch.cat([obs, action], dim=-1)
@@ -208,7 +215,7 @@ class BranchCriticEnsemble(nn.Module):
         )
         self.state_norms = nn.ModuleList(EnsembleLayerNorm(n, b) for b in dims[1:])
         self.action_layer = EnsembleLinear(n, act_dim, dims[-1])
-        self.out = EnsembleLinear(n, dims[-1], 1)
+        self.out = EnsembleLinear(n, dims[-1], 1, head=True)
 
     def forward(self, obs, action, members: slice = slice(None)) -> torch.Tensor:
         x = obs

@@ -32,8 +32,9 @@ from walkers.agents.declarations.hyperparameters import (
 )
 
 #: What the menus of names offer, by name: what each name builds lives beside the torch code
-#: (``CRITIC_ARCHITECTURES``, ``NOISE_TYPES``, ``ACTIVATIONS``, ``PRECISIONS`` in
-#: :mod:`walkers.agents.common`; tests/agents/test_hyperparameters.py holds them equal), so that
+#: (``CRITIC_ARCHITECTURES``, ``NOISE_TYPES``, ``ACTIVATIONS`` in :mod:`walkers.agents.common`,
+#: ``PRECISIONS`` in :mod:`walkers.agents.base`; tests/agents/test_hyperparameters.py holds them
+#: equal), so that
 #: checking a config, comparing runs or planning a study imports no torch.
 CRITIC_ARCHITECTURE_NAMES = ("mlp", "layernorm_branch")
 NOISE_TYPE_NAMES = ("gaussian", "ou")
@@ -44,6 +45,11 @@ COMPILE_DOC = (
     "torch.compile: on CPU the whole update of TD3, DDPG and SAC (1.2-1.3x,\n"
     "docs/speed.md), the losses of the others (no gain); on CUDA the losses\n"
     "with CUDA graphs. Floats rounded otherwise than eager: an arm of its own"
+)
+PRECISION_DOC = (
+    "fp32 (the reference) | bf16: the update under bfloat16 autocast (matmuls in\n"
+    "bfloat16; weights, optimizer and losses in fp32), acting in fp32. Faster on a\n"
+    "CPU with AMX or AVX-512 BF16 (docs/speed.md); other rounding: an arm of its own"
 )
 CAPTURE_DOC = (
     "the whole update (sampling, losses, backward, optimizer steps, guard,\n"
@@ -91,6 +97,7 @@ class OffPolicy(Replay):
     """TD3, DDPG and SAC: replay and target networks."""
 
     tau: float = hp(0.005, DISCOUNT, "target networks: theta' <- tau * theta + (1 - tau) * theta'")
+    precision: str = hp("fp32", one_of(*PRECISION_NAMES), PRECISION_DOC)
 
 
 @dataclass
@@ -474,6 +481,7 @@ class TD3BCHyperparameters(TD3Ideas):
     )
     compile: bool = hp(False, BOOL, COMPILE_DOC)
     capture: bool | str = hp("auto", CAPTURE, CAPTURE_DOC)
+    precision: str = hp("fp32", one_of(*PRECISION_NAMES), PRECISION_DOC)
 
 
 @dataclass

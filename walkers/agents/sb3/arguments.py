@@ -39,6 +39,7 @@ MAPPING: dict[str, dict[str, str]] = {
         "buffer_size": "buffer_size",
         "compile": "- (false only)",
         "capture": "- (false or auto: SB3 runs eagerly)",
+        "precision": "- (fp32 only)",
     },
     "ddpg": {
         "lr": "learning_rate",
@@ -56,6 +57,7 @@ MAPPING: dict[str, dict[str, str]] = {
         "buffer_size": "buffer_size",
         "compile": "- (false only)",
         "capture": "- (false or auto: SB3 runs eagerly)",
+        "precision": "- (fp32 only)",
     },
     "sac": {
         "lr": "learning_rate (actor, critics and temperature)",
@@ -70,6 +72,7 @@ MAPPING: dict[str, dict[str, str]] = {
         "buffer_size": "buffer_size",
         "compile": "- (false only)",
         "capture": "- (false or auto: SB3 runs eagerly)",
+        "precision": "- (fp32 only)",
     },
     "crossq": {
         "lr": "learning_rate (actor, critics and temperature)",
@@ -156,6 +159,8 @@ def sb3_arguments(algo: str, hp: Mapping) -> dict:
         if hp.get(key) is True:
             allowed = "false" if key == "compile" else "false or auto"
             raise _refuse(algo, key, hp[key], f"{allowed} (SB3 runs eagerly)")
+    if hp.get("precision", "fp32") != "fp32":
+        raise _refuse(algo, "precision", hp["precision"], "fp32 (SB3 runs in fp32)")
     build = {"ppo": _ppo, "sac": _sac, "crossq": _crossq}
     return build.get(algo, _deterministic_actor_critic)(algo, hp)
 

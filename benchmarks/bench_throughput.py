@@ -46,6 +46,7 @@ import gymnasium as gym
 import torch
 from rounds import alternate, print_table
 
+from walkers.agents.base import cpu_has_native_bf16
 from walkers.agents.crossq import CrossQ
 from walkers.agents.ddpg import DDPG
 from walkers.agents.factory import defaults_for
@@ -308,6 +309,14 @@ def contenders(only: str | None = None, population: tuple[int, ...] = (2, 4)) ->
             if k > 1
         },
     }
+    if DEVICE == "cuda" or cpu_has_native_bf16():  # algo.precision=bf16: an arm of its own
+        loops |= {
+            f"walkers {name} compile bf16": partial(
+                WalkersLoop, cls, hidden_sizes=[HIDDEN, HIDDEN], compile=True, precision="bf16",
+                **common,
+            )
+            for name, cls in (("TD3", TD3), ("SAC", SAC))
+        }  # fmt: skip
     if DEVICE == "cpu":
         if len(os.sched_getaffinity(0)) > 1:  # the cores as processes, a seed (or K=2) each
             loops |= {

@@ -122,9 +122,12 @@ NATIVE_BF16_FLAGS = ("avx512_bf16", "amx_bf16")
 def autocast(device: torch.device, precision: str):
     """The context an agent learns in: bfloat16 autocast for ``bf16`` (matmuls and attention in
     bfloat16, reductions, LayerNorm, the weights and the optimizer in fp32), nothing for
-    ``fp32``."""
+    ``fp32``. Without autocast's cache of cast weights, which a CUDA graph's capture (an update
+    under ``capture``) must not hold: each weight is cast where it is used."""
     dtype = PRECISIONS[precision]
-    return torch.autocast(device.type, dtype=dtype or torch.float32, enabled=dtype is not None)
+    return torch.autocast(
+        device.type, dtype=dtype or torch.float32, enabled=dtype is not None, cache_enabled=False
+    )
 
 
 def cpu_has_native_bf16(cpuinfo: str | None = None) -> bool | None:

@@ -184,7 +184,7 @@ baselines-gpu:  ## on a GPU machine: the next off-policy 100k baselines, as resu
 	bash benchmarks/device_baselines.sh
 
 test-gpu: $(STAMP)  ## on a GPU machine: the agents' and resume tests on CUDA
-	$(PY) -m pytest -q -n 4 --dist loadscope -m "not cluster and not browser and not faults and not slow" tests/agents/test_algorithms.py tests/agents/test_population.py tests/agents/test_ppo.py tests/agents/test_ppo_vector.py tests/training/test_checkpoints.py tests/training/test_seeds_and_resume.py tests/agents/test_health.py tests/agents/test_td3.py tests/agents/test_sac.py tests/agents/test_capture.py tests/test_random_streams.py $(ARGS)
+	$(PY) -m pytest -q -n 4 --dist loadscope -m "not cluster and not browser and not faults and not slow" tests/agents/test_algorithms.py tests/agents/test_population.py tests/agents/test_ppo.py tests/agents/test_ppo_vector.py tests/training/test_checkpoints.py tests/training/test_seeds_and_resume.py tests/agents/test_health.py tests/agents/test_td3.py tests/agents/test_sac.py tests/agents/test_capture.py tests/test_seeding.py $(ARGS)
 
 bench-envs: $(STAMP)  ## how N training envs step on this machine: sequential, sync, async
 	$(PY) benchmarks/bench_envs.py $(ARGS)

@@ -31,7 +31,7 @@ part() {  # part NAME SECONDS COMMAND...
   echo "$name: exit $rc after $((SECONDS - start)) s (limit $limit)" | tee -a "$OUT/summary.txt"
 }
 py=.venv/bin/python
-part capture 90 $py -m pytest -q -p no:cacheprovider tests/agents/test_capture.py tests/test_random_streams.py
+part capture 90 $py -m pytest -q -p no:cacheprovider tests/agents/test_capture.py tests/test_seeding.py
 part population 150 $py benchmarks/bench_population.py --device cuda --phase learning \
   --populations 1,5,16 --reps 1 --steps 3000 --log-every 500 --split
 part update 75 $py benchmarks/bench_update.py --device cuda --reps 3 --phases

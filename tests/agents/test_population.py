@@ -121,7 +121,7 @@ def test_a_member_trains_as_a_single_run_of_its_seed(store, algo):
     to float rounding (batched matmuls of 4 members and of 2 round differently). On the CPU:
     on CUDA the kernels for 2 members and for 1 differ more, and CrossQ's batch-normalised
     critic grows that into a different third episode (an H200: -1281 against -1225); the draws
-    themselves are the same on any device (tests/test_random_streams.py)."""
+    themselves are the same on any device (tests/test_seeding.py)."""
     common = [f"algo={algo}", "env=pendulum", "device=cpu", *TINY, *tiny(algo), *store["overrides"]]
     train(compose_cfg([*common, "population=2", "seed=5"]))
     train(compose_cfg([*common, "seed=6"]))

@@ -1,5 +1,5 @@
 """The replay buffer of walkers/data/replay.py: a population's members sample as single buffers
-of their seeds would (its counter-based streams: ``tests/test_random_streams.py``), a member cut
+of their seeds would (its counter-based streams: ``tests/test_seeding.py``), a member cut
 out loads as one, and a buffer an older walkers saved still loads."""
 
 from __future__ import annotations

@@ -16,7 +16,7 @@ is CUDA; ``true``; ``false``) a round's fresh seeds of an (arm, env) run as one 
 for all of them. Each member is still its own MLflow run under its own seed's job key (the job's
 key holds ``{seed}``, which each member fills in), so reruns, resumes and the sequential rule
 see the same runs a job per seed would make; and a member trains as the single run of its seed
-(:mod:`walkers.random_streams`). Seeds that ran before (a killed or failed attempt) are
+(:mod:`walkers.seeding`). Seeds that ran before (a killed or failed attempt) are
 continued one job each.
 
 Bad input (an unknown arm config or env, a maximum below the minimum, alpha out of range, an arm

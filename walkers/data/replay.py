@@ -10,7 +10,7 @@ import numpy as np
 import torch
 
 from walkers.data.episodes import Episode
-from walkers.random_streams import RandomStreams
+from walkers.seeding import RandomStreams
 
 log = logging.getLogger("walkers")
 
@@ -39,7 +39,7 @@ class ReplayBuffer:
     ends, so a saved buffer can be cut back into episodes (a "replay" dataset,
     :mod:`walkers.collect`). The members step together, so they hold equally many transitions.
     :meth:`sample` draws every member's mini-batch in one op, member k's rows from its own
-    counter-based stream (:class:`~walkers.random_streams.RandomStreams`, keyed by its seed), so
+    counter-based stream (:class:`~walkers.seeding.RandomStreams`, keyed by its seed), so
     a seeded run samples the same batches every time, on any device, and a member samples what a
     single run of its seed samples. A member's :meth:`member_state_dict` is a single agent's
     :meth:`state_dict`.

@@ -54,8 +54,7 @@ from walkers.agents.common.networks import EnsembleActor, make_critic
 from walkers.agents.common.noise import GaussianNoise
 from walkers.agents.common.population import Member
 from walkers.data.replay import Batch, ReplayBuffer
-from walkers.random_streams import RandomStreams
-from walkers.seeding import numpy_rng
+from walkers.seeding import RandomStreams, numpy_rng
 
 log = logging.getLogger("walkers")
 

@@ -5,7 +5,7 @@ not by the GPU's arithmetic; ``torch.compile`` of the losses alone leaves the ba
 optimizer steps, the guard and the target updates as launches of their own. LeanRL's lesson is to
 capture the whole step: sampling the batch, the losses, backward, the fused optimizer steps, the
 NaN guard and its counters, the delayed actor step and the target update. Everything an update
-does is device work with no host sync (:mod:`walkers.random_streams` draws the batch and the noise
+does is device work with no host sync (:mod:`walkers.seeding` draws the batch and the noise
 with tensor ops; the guard counts on the device), so the algorithm's own :meth:`update`, as
 written in its file, is what is captured: there is no second version of it to keep in step.
 

@@ -22,7 +22,7 @@ from walkers.agents.base import Policy
 from walkers.agents.common.health import NonFiniteGuard
 from walkers.agents.common.noise import GaussianNoise
 from walkers.data.replay import ReplayBuffer
-from walkers.random_streams import RandomStreams
+from walkers.seeding import RandomStreams
 
 
 @dataclass

@@ -1,13 +1,13 @@
-"""Counter-based random streams: SplitMix64 to the bit, a member's stream independent of its
-population, a saved state that continues. The replay buffer that samples with them:
-``tests/data/test_replay.py``."""
+"""The counter-based random streams of walkers.seeding: SplitMix64 to the bit, a member's
+stream independent of its population, a saved state that continues. The replay buffer that samples
+with them: ``tests/data/test_replay.py``."""
 
 from __future__ import annotations
 
 import pytest
 import torch
 
-from walkers.random_streams import GOLDEN, MIX_1, MIX_2, RandomStreams, stream_key
+from walkers.seeding import GOLDEN, MIX_1, MIX_2, RandomStreams, stream_key
 
 MASK = (1 << 64) - 1
 

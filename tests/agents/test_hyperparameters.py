@@ -41,7 +41,7 @@ SETTINGS = {f.name: f for f in fields(RunSettings)}
     ("schema", "key", "built"),
     [
         ("ddpg", "critic_architecture", "walkers.agents.common.networks.CRITIC_ARCHITECTURES"),
-        ("ddpg", "noise_type", "walkers.agents.common.noise.NOISE_TYPES"),
+        ("ddpg", "noise_type", "walkers.agents.common.actor_critic.NOISE_TYPES"),
         ("ppo", "activation", "walkers.agents.common.policies.ACTIVATIONS"),
         ("dt", "precision", "walkers.agents.base.PRECISIONS"),
         ("td3", "precision", "walkers.agents.base.PRECISIONS"),

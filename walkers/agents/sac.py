@@ -26,11 +26,10 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
-from walkers.agents.common.actor_critic import ActorCritic, frozen, logged
+from walkers.agents.common.actor_critic import ActorCritic, GaussianNoise, frozen, logged
 from walkers.agents.common.functional import gradient_of, guarded_adam_step
 from walkers.agents.common.health import skip_nonfinite
 from walkers.agents.common.networks import EnsembleGaussianActor, Temperature, soft_update
-from walkers.agents.common.noise import GaussianNoise
 from walkers.data.replay import Batch
 
 

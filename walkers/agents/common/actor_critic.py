@@ -34,6 +34,7 @@ import copy
 import logging
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -46,27 +47,25 @@ from walkers.agents.base import (
     resolve_device,
     warn_if_slow_precision,
 )
+from walkers.agents.common import population as members_io
 from walkers.agents.common.capture import CapturedUpdate
-from walkers.agents.common.checkpointing import MemberCheckpoints
 from walkers.agents.common.functional import adam_state
 from walkers.agents.common.health import NonFiniteGuard
 from walkers.agents.common.networks import EnsembleActor, make_critic
-from walkers.agents.common.noise import GaussianNoise
-from walkers.agents.common.population import Member
 from walkers.data.replay import Batch, ReplayBuffer
 from walkers.seeding import RandomStreams, numpy_rng
 
 log = logging.getLogger("walkers")
 
 
-class ActorCritic(MemberCheckpoints, Agent):
+class ActorCritic(Agent):
     """The shared core (see the module docstring). An algorithm subclasses it: its constructor
     calls this one (settings and counters only: nothing is built yet), sets up its own
     attributes, then builds its parts explicitly with :meth:`build_actor`, :meth:`build_critic`,
     :meth:`target_of`, :meth:`adam` and :meth:`build_members`, in that order (the order of the
     seeded initialisations), and last :meth:`compile_update`. It writes its own :meth:`update`
-    and :meth:`policy`, and lists its per-member parts beyond the core's (:meth:`member_cuts`;
-    the checkpoints are :class:`~walkers.agents.common.checkpointing.MemberCheckpoints`')."""
+    and :meth:`policy`, and lists its per-member parts beyond the core's (:meth:`member_cuts`:
+    what a member's checkpoint holds)."""
 
     num_critics = 2  # critics per member
     trains_populations = True  # population=K: K seeds, one batched matmul a layer
@@ -400,6 +399,153 @@ class ActorCritic(MemberCheckpoints, Agent):
         """Each member's inputs once per critic: ``(K, N, d)`` -> ``(K * C, N, d)`` (a view for
         a single agent)."""
         return x.unsqueeze(1).expand(-1, self.num_critics, -1, -1).flatten(0, 1)
+
+    # --- checkpoints: a single agent's is member 0 cut out, a population's its members' --------
+    def state_dict(self, with_buffer: bool = False) -> dict:
+        if self.population == 1:
+            return members_io.member_state_dict(self, 0, with_buffer)
+        return {
+            "members": [
+                members_io.member_state_dict(self, i, with_buffer) for i in range(self.population)
+            ]
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        for i, member_state in enumerate(state.get("members", [state])):
+            members_io.load_member_state_dict(self, i, member_state)
+
+    def load_counters(self, state: dict) -> None:
+        self.steps, self.num_updates = state["steps"], state["num_updates"]
+        self.random_until = state.get("random_until", self.learning_starts)
+        self.update_after = state.get("update_after", self.learning_starts)
+
+    def refill_if_lost(self, buffer_state: dict) -> None:
+        """A checkpoint without its transitions: refill the buffer before updating again.
+
+        Updating at once would fit the critics to the few transitions collected since (silently
+        a different experiment). Instead the agent collects ``max(learning_starts, batch_size)``
+        transitions first: of the current policy with exploration noise, or uniform random ones
+        if the run was interrupted in its warm-up (the warm-up restarts whole). Silent here: an
+        agent restored only to act (walkers.evaluate, walkers.collect) never refills.
+        """
+        if "data" in buffer_state or buffer_state.get("size", 0) == 0:
+            return
+        refill = max(self.learning_starts, self.batch_size)
+        in_warmup = self.steps < self.random_until
+        if in_warmup:
+            self.random_until = self.steps + refill
+        self.update_after = max(self.update_after, self.steps + refill)
+        self.refilled_at = self.steps  # the trainer says so when it resumes (resume_notes)
+        self.refill_kind = (
+            "uniform random: the warm-up again" if in_warmup else "current policy with noise"
+        )
+
+    def resume_notes(self) -> dict[str, str]:
+        if self.refilled_at is None:
+            return {}
+        return {
+            "walkers.buffer_refill": f"steps {self.refilled_at}-{self.update_after} "
+            f"({self.refill_kind})"
+        }
+
+    # --- a population's members one at a time (walkers.agents.common.population) ---------------
+    def member_cuts(self, i: int) -> dict[str, slice]:
+        """Member ``i``'s slice of the leading dimension of every per-member part, by attribute
+        name: modules (their state dicts) and optimizers (their Adam moments). A member's
+        checkpoint holds these parts, cut; an algorithm with more parts (targets, a temperature)
+        adds them."""
+        own, critics = self.own_slice(i), self.critics_slice(i)
+        return {
+            "actor": own,
+            "critic": critics,
+            "actor_optimizer": own,
+            "critic_optimizer": critics,
+        }
+
+    @staticmethod
+    def own_slice(i: int) -> slice:
+        """Member ``i``'s entry of a per-member part (the actor, a temperature)."""
+        return slice(i, i + 1)
+
+    def critics_slice(self, i: int) -> slice:
+        """Member ``i``'s critics in the critic ensemble."""
+        return slice(i * self.num_critics, (i + 1) * self.num_critics)
+
+    def member_policy(self, i: int) -> members_io.MemberAgent:
+        """Member ``i`` as an agent of its own (evaluation rollouts, its checkpoints)."""
+        return members_io.MemberAgent(self, i)
+
+    def member_state_dict(self, i: int, with_buffer: bool = False) -> dict:
+        return members_io.member_state_dict(self, i, with_buffer)
+
+    def load_member_state_dict(self, i: int, state: dict) -> None:
+        members_io.load_member_state_dict(self, i, state)
+
+
+# --- what each member has of its own: its RNG and exploration noise -------------------------
+@dataclass
+class Member:
+    """What one member (one seed) has of its own besides its slices of the networks, the replay
+    buffer and the update's noise streams."""
+
+    rng: np.random.Generator  # uniform warm-up actions and exploration noise
+    noise: GaussianNoise
+
+    def state_dict(self) -> dict:
+        return {"rng": self.rng.bit_generator.state, "noise": self.noise.state_dict()}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.rng.bit_generator.state = state["rng"]
+        self.noise.load_state_dict(state["noise"])
+
+
+# Exploration noise of the deterministic actor-critics (DDPG, TD3), one process per member.
+class GaussianNoise:
+    """i.i.d. N(0, sigma) exploration noise (TD3's)."""
+
+    def __init__(self, sigma: float, size: int, rng: np.random.Generator):
+        self.sigma, self.size, self.rng = sigma, size, rng
+
+    def sample(self) -> np.ndarray:
+        return self.rng.normal(0.0, self.sigma, self.size)
+
+    def reset(self) -> None:
+        pass
+
+    def state_dict(self) -> dict:
+        return {}
+
+    def load_state_dict(self, state: dict) -> None:
+        pass
+
+
+class OrnsteinUhlenbeckNoise(GaussianNoise):
+    """Temporally correlated noise x <- x + theta (0 - x) dt + sigma sqrt(dt) N(0, 1) (DDPG paper).
+
+    Reset to zero at the start of every episode.
+    """
+
+    def __init__(self, sigma, size, rng, theta: float = 0.15, dt: float = 1e-2):
+        super().__init__(sigma, size, rng)
+        self.theta, self.dt = theta, dt
+        self.x = np.zeros(size)
+
+    def sample(self) -> np.ndarray:
+        noise = self.rng.normal(0.0, 1.0, self.size)
+        self.x = self.x - self.theta * self.x * self.dt + self.sigma * np.sqrt(self.dt) * noise
+        return self.x
+
+    def reset(self) -> None:
+        self.x = np.zeros(self.size)
+
+    def state_dict(self) -> dict:
+        return {"x": self.x.copy()}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.x = state["x"].copy()
+
+
+NOISE_TYPES = {"gaussian": GaussianNoise, "ou": OrnsteinUhlenbeckNoise}
 
 
 @contextmanager

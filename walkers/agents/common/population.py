@@ -12,7 +12,6 @@ into a population (:func:`load_member_state_dict`, ``resume=[id,id,...]``).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
@@ -20,32 +19,15 @@ import torch
 
 from walkers.agents.base import Policy
 from walkers.agents.common.health import NonFiniteGuard
-from walkers.agents.common.noise import GaussianNoise
 from walkers.data.replay import ReplayBuffer
 from walkers.seeding import RandomStreams
-
-
-@dataclass
-class Member:
-    """What one member (one seed) has of its own besides its slices of the networks, the replay
-    buffer and the update's noise streams."""
-
-    rng: np.random.Generator  # uniform warm-up actions and exploration noise
-    noise: GaussianNoise
-
-    def state_dict(self) -> dict:
-        return {"rng": self.rng.bit_generator.state, "noise": self.noise.state_dict()}
-
-    def load_state_dict(self, state: dict) -> None:
-        self.rng.bit_generator.state = state["rng"]
-        self.noise.load_state_dict(state["noise"])
 
 
 class Population(Protocol):
     """What member I/O needs of an agent with members (an
     :class:`~walkers.agents.common.actor_critic.ActorCritic`, which imports this module)."""
 
-    members: list[Member]
+    members: list  # of actor_critic.Member
     buffer: ReplayBuffer
     update_noise: RandomStreams
     guard: NonFiniteGuard

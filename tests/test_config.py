@@ -12,8 +12,7 @@ from omegaconf import OmegaConf
 
 from tests.conftest import CONF_DIR, compose_cfg, run_cli
 from walkers import PROJECT_ROOT
-from walkers.training.settings import SET_BY_WALKERS, RunSettings
-from walkers.training.validate import is_offline, validate
+from walkers.training.settings import SET_BY_WALKERS, RunSettings, is_offline, validate
 from walkers.tuning.trial import make_pruner
 
 GROUPS = {

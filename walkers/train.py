@@ -54,7 +54,7 @@ def trial_reporter(cfg: DictConfig):
 def settings_checked(cfg: DictConfig) -> None:
     """A command's values checked before Hydra writes its output folder: a refused value
     creates nothing (what needs the store, a run to continue say, is checked in the job)."""
-    from walkers.training.validate import validate
+    from walkers.training.settings import validate
 
     if not cfg.resume:  # a resumed run's values are its stored config's, read from the store
         validate(cfg, warn=False)

@@ -27,7 +27,7 @@ from walkers.ab.spec import StudySpec
 from walkers.errors import ConfigError
 from walkers.plan import make_plan
 from walkers.tracking.bundles import read_bundle
-from walkers.training.validate import validate
+from walkers.training.settings import validate
 
 
 def test_an_obvious_difference_stops_at_the_minimum_seeds_and_a_rerun_runs_nothing(store):

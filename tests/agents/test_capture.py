@@ -20,7 +20,7 @@ from walkers.agents.sac import SAC
 from walkers.agents.td3 import TD3
 from walkers.agents.td7 import TD7
 from walkers.errors import ConfigError
-from walkers.training.validate import validate
+from walkers.training.settings import validate
 
 OBS, ACT = 5, 2  # filled_agent's shapes
 CUDA = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA (make test-gpu)")

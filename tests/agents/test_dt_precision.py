@@ -13,7 +13,7 @@ from walkers.agents.base import cpu_has_native_bf16
 from walkers.agents.dt import DecisionTransformer
 from walkers.agents.factory import defaults_for
 from walkers.errors import ConfigError
-from walkers.training.validate import validate
+from walkers.training.settings import validate
 
 SMALL = {
     "context_length": 4,

@@ -28,10 +28,10 @@ from walkers.training.settings import (
     HELP_YAML,
     RunSettings,
     train_yaml,
+    validate,
     write_help_yaml,
     write_train_yaml,
 )
-from walkers.training.validate import validate
 
 DECLARED = [(name, f.name) for name, schema in SCHEMAS.items() for f in fields(schema)]
 SETTINGS = {f.name: f for f in fields(RunSettings)}

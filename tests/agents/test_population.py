@@ -24,7 +24,7 @@ from walkers.train import train
 from walkers.training import checkpoints
 from walkers.training.checkpoints import agent_from_checkpoint
 from walkers.training.envs import make_env
-from walkers.training.validate import validate
+from walkers.training.settings import validate
 
 SMALL = defaults_for(
     TD3, batch_size=16, learning_starts=20, hidden_sizes=[16, 16], buffer_size=1000

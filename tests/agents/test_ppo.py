@@ -20,7 +20,7 @@ from walkers.errors import ConfigError
 from walkers.train import train
 from walkers.training import checkpoints
 from walkers.training.envs import make_env
-from walkers.training.validate import validate
+from walkers.training.settings import validate
 
 SMALL = PPO_TINY
 

@@ -17,7 +17,7 @@ from walkers.agents.ppo import PPO
 from walkers.errors import ConfigError
 from walkers.train import train
 from walkers.training import checkpoints
-from walkers.training.validate import validate
+from walkers.training.settings import validate
 
 VECTOR = ["algo=ppo", "env=pendulum", "algo.num_envs=4", *PPO_TINY]
 VECTOR += ["eval_episodes=1", "log_every=100"]

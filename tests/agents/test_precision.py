@@ -16,7 +16,7 @@ from walkers.agents.sac import SAC
 from walkers.agents.sb3.arguments import NotExpressible, sb3_arguments
 from walkers.agents.td3 import TD3
 from walkers.errors import ConfigError
-from walkers.training.validate import validate
+from walkers.training.settings import validate
 
 OBS, ACT = 5, 2
 SMALL = {"hidden_sizes": [32, 32], "batch_size": 32, "learning_starts": 0, "buffer_size": 2000}

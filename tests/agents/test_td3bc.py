@@ -41,7 +41,7 @@ from walkers.training.checkpoint_evaluation import evaluate
 from walkers.training.checkpoints import agent_from_checkpoint
 from walkers.training.dataset_recording import collect
 from walkers.training.envs import make_env
-from walkers.training.validate import validate
+from walkers.training.settings import validate
 
 SMALL = {"hidden_sizes": [16, 16], "batch_size": 32}
 MEAN, STD = np.array([5.0, -1.0, 0.0]), np.array([1.0, 2.0, 3.0])

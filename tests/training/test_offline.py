@@ -35,7 +35,7 @@ from walkers.training.checkpoints import agent_from_checkpoint
 from walkers.training.dataset_recording import collect, play
 from walkers.training.envs import make_env
 from walkers.training.evaluation import offline_references
-from walkers.training.validate import validate
+from walkers.training.settings import validate
 
 pytestmark = pytest.mark.slow  # `make test-slow`, beside `make test` in CI
 

@@ -170,7 +170,7 @@ def test_a_resume_without_the_buffer_says_so_and_refills_before_updating(
 
 
 def test_a_learning_rate_warm_up_longer_than_the_run_is_pointed_out(caplog):
-    from walkers.training.validate import warn_short_warmup
+    from walkers.training.settings import warn_short_warmup
 
     warn_short_warmup(compose_cfg(["algo=dt", "env=pendulum", "total_steps=1500"]))
     (record,) = [r for r in caplog.records if "algo.warmup_steps" in r.getMessage()]

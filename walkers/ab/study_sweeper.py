@@ -49,7 +49,7 @@ from walkers.tracking.client import connect, flatten
 from walkers.tracking.names import JOB_KEY_TAG
 from walkers.tracking.tracker import ending
 from walkers.training.provenance import DIVERGED_TAG, SEED_IN_KEY, shareable
-from walkers.training.validate import validate
+from walkers.training.settings import validate
 from walkers.tuning.study_runs import end_jobs_runs
 
 log = logging.getLogger("walkers")

@@ -13,7 +13,7 @@
 Nothing else decides it, and the checkpoint a continued run goes on from is found here too
 (:func:`last_checkpoint`: the local copy with the replay buffer, or MLflow's). The plan's record
 (which runs continue, from which checkpoints) is what the session builds from. The config is
-checked once (:mod:`walkers.training.validate`): the command's before the store is asked
+checked once (:func:`walkers.training.settings.validate`): the command's before the store is asked
 anything, and where a run continues, its stored config with the overrides it takes. Each
 decision the user did not ask for by name is said in one line.
 """
@@ -59,7 +59,7 @@ from walkers.training.provenance import (
     other_data,
 )
 from walkers.training.run import RunFolder, TrainingRun, in_training_here
-from walkers.training.validate import check_command, check_dataset_env, is_offline, validate
+from walkers.training.settings import check_command, check_dataset_env, is_offline, validate
 
 if TYPE_CHECKING:  # Minari is imported only when a dataset is used
     from walkers.data.datasets import OfflineData

@@ -79,7 +79,7 @@ def train_vectorized(
     agent: Agent, envs: gym.vector.SyncVectorEnv, book: RunBook
 ) -> dict[str, float]:
     """Until ``total_steps`` env steps summed over the ``num_envs`` envs (a multiple of it, as
-    ``checkpoint_every`` is: walkers.training.validate), which finish their episodes in the
+    ``checkpoint_every`` is: walkers.training.settings.validate), which finish their episodes in the
     step (``AutoresetMode.SAME_STEP``); returns the summary."""
     p, n = book.progress, envs.num_envs
     with progress_shown([book]) as bar:

@@ -6,8 +6,9 @@ fields are made by :func:`hp`. Everything else is derived from that one declarat
 - the readable menu ``conf/algo/<name>.yaml`` (:mod:`walkers.agents.declarations.menus`,
   ``make menus``; a test holds it in step with the declarations), each value commented with its
   doc;
-- the check of a composed config (:func:`problems`, called by ``walkers.training.validate``):
-  a one-line error naming the key, the bad value and what is allowed;
+- the check of a composed config (:func:`problems`, called by
+  ``walkers.training.settings.validate``): a one-line error naming the key, the bad value and
+  what is allowed;
 - the agent's constructor arguments, which have no defaults of their own
   (:func:`walkers.agents.factory.defaults_for` gives them to code that builds an agent without
   a config, e.g. tests and benchmarks).

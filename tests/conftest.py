@@ -22,8 +22,7 @@ from mlflow.tracking import MlflowClient
 
 from walkers import PROJECT_ROOT
 from walkers.agents.base import Transition
-from walkers.agents.declarations.hyperparameters import tiny_overrides
-from walkers.agents.declarations.schemas import SCHEMAS
+from walkers.agents.declarations.schemas import SCHEMAS, tiny_overrides
 from walkers.agents.factory import defaults_for
 from walkers.data.datasets import OfflineData
 from walkers.data.episodes import Episode

@@ -8,8 +8,7 @@ from hydra.errors import InstantiationException
 from omegaconf import DictConfig, OmegaConf
 
 from walkers.agents.base import Agent, resolve_device
-from walkers.agents.declarations.hyperparameters import defaults
-from walkers.agents.declarations.schemas import schema_of
+from walkers.agents.declarations.schemas import defaults, schema_of
 from walkers.agents.sb3.arguments import NotExpressible
 from walkers.agents.sb3.twin import SB3Twin
 from walkers.errors import ConfigError

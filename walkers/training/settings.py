@@ -1,7 +1,7 @@
 """The run's own settings (``total_steps``, ``eval_every``, ``seed``, ``device``...), declared once,
 and a composed config checked before any work starts (and before an MLflow run exists).
 
-Like an algorithm's hyperparameters (:mod:`walkers.agents.declarations.hyperparameters`), each
+Like an algorithm's hyperparameters (:mod:`walkers.agents.declarations.schemas`), each
 setting is a field of :class:`RunSettings` made by ``hp(default, allowed, doc)``, and the rest
 follows from it:
 
@@ -40,17 +40,19 @@ from omegaconf.errors import InterpolationResolutionError
 
 from walkers import PROJECT_ROOT
 from walkers.agents.declarations import menus
-from walkers.agents.declarations.hyperparameters import (
+from walkers.agents.declarations.menus import entry, yaml_value  # the algorithm menus' layout
+from walkers.agents.declarations.schemas import (
     NON_NEGATIVE_INT,
     NUMBER,
     POSITIVE_INT,
+    SCHEMAS,
     Allowed,
+    Replay,
     hp,
     or_null,
     problems,
+    schema_of,
 )
-from walkers.agents.declarations.menus import entry, yaml_value  # the algorithm menus' layout
-from walkers.agents.declarations.schemas import SCHEMAS, Replay, schema_of
 from walkers.agents.sb3.arguments import SB3_CLASSES, NotExpressible, sb3_arguments
 from walkers.agents.sb3.twin import import_sb3
 from walkers.errors import ConfigError

@@ -14,8 +14,7 @@ from dataclasses import fields
 from pathlib import Path
 
 from walkers import PROJECT_ROOT
-from walkers.agents.declarations.hyperparameters import Hyperparameters
-from walkers.agents.declarations.schemas import SCHEMAS
+from walkers.agents.declarations.schemas import SCHEMAS, Hyperparameters
 
 COMMENT_COLUMN = 25
 

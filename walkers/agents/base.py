@@ -14,7 +14,7 @@ the trainer calls only ``update`` in a loop. Sequence policies also see episode 
 rewards while they act (``begin_episode``, ``record_reward``); the others ignore both.
 
 Stable-Baselines3's twins (``impl=sb3``, :mod:`walkers.agents.sb3.twin`) learn inside SB3's
-own loop, and a population's member (:class:`~walkers.agents.common.population.MemberAgent`)
+own loop, and a population's member (:class:`~walkers.agents.common.actor_critic.MemberAgent`)
 through its population: both are policies, acting greedily (evaluations, videos) and
 checkpointing.
 

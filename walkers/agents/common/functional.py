@@ -27,7 +27,9 @@ import torch
 from torch import nn
 
 from walkers.agents.common.health import skipped_members
-from walkers.agents.common.population import ADAM_MOMENTS
+
+#: The per-parameter moments of Adam's state (a member's checkpoint holds its slice of each).
+ADAM_MOMENTS = ("exp_avg", "exp_avg_sq")
 
 
 class _Loss(nn.Module):

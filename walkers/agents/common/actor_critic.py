@@ -25,8 +25,8 @@ one, ``population=K`` trains K independent seeds (``seed, seed + 1, ...``) with 
 matmul a layer for all of them. Each member has its own replay buffer, exploration noise and RNG
 (:class:`Member`); losses are sums of per-member losses, so each member's gradient is its own,
 and Adam, being elementwise, keeps members independent under one optimizer. Cutting a member out
-as a single agent and loading it back is :func:`member_state_dict` and
-:func:`load_member_state_dict`.
+as a single agent and loading it back is :meth:`ActorCritic.member_state_dict` and
+:meth:`ActorCritic.load_member_state_dict`.
 """
 
 from __future__ import annotations
@@ -404,14 +404,12 @@ class ActorCritic(Agent):
     # --- checkpoints: a single agent's is member 0 cut out, a population's its members' --------
     def state_dict(self, with_buffer: bool = False) -> dict:
         if self.population == 1:
-            return member_state_dict(self, 0, with_buffer)
-        return {
-            "members": [member_state_dict(self, i, with_buffer) for i in range(self.population)]
-        }
+            return self.member_state_dict(0, with_buffer)
+        return {"members": [self.member_state_dict(i, with_buffer) for i in range(self.population)]}
 
     def load_state_dict(self, state: dict) -> None:
         for i, member_state in enumerate(state.get("members", [state])):
-            load_member_state_dict(self, i, member_state)
+            self.load_member_state_dict(i, member_state)
 
     def load_counters(self, state: dict) -> None:
         self.steps, self.num_updates = state["steps"], state["num_updates"]
@@ -447,7 +445,10 @@ class ActorCritic(Agent):
             f"({self.refill_kind})"
         }
 
-    # --- a population's members one at a time (member_state_dict, load_member_state_dict) ------
+    # --- a population's members one at a time: a single agent is a population of one, so member
+    # i cut out is exactly a single agent's state_dict(), and a population's is the list of its
+    # members'. A member's state loads into an ordinary agent (walkers.evaluate, walkers.collect,
+    # resume= to continue it alone) or back into a population (resume=[id,id,...]).
     def member_cuts(self, i: int) -> dict[str, slice]:
         """Member ``i``'s slice of the leading dimension of every per-member part, by attribute
         name: modules (their state dicts) and optimizers (their Adam moments). A member's
@@ -475,64 +476,51 @@ class ActorCritic(Agent):
         return MemberAgent(self, i)
 
     def member_state_dict(self, i: int, with_buffer: bool = False) -> dict:
-        return member_state_dict(self, i, with_buffer)
+        """Member ``i`` of this agent as a single agent's ``state_dict()``: its slice of every
+        per-member part (``self.member_cuts``: networks, targets, Adam moments, ...), its RNG,
+        noise, buffer and guard counters; the shared counters."""
+        state = {}
+        for name, cut in self.member_cuts(i).items():
+            part = getattr(self, name)
+            if isinstance(part, torch.optim.Optimizer):
+                optimizer_state = part.state_dict()
+                for index, moments in list(optimizer_state["state"].items()):
+                    # a new dict: state_dict() shares the live tensors
+                    sliced = {key: moments[key][cut].clone() for key in ADAM_MOMENTS}
+                    optimizer_state["state"][index] = moments | sliced
+                state[name] = optimizer_state
+            else:
+                state[name] = {k: v[cut].clone() for k, v in part.state_dict().items()}
+        shared = ("steps", "num_updates", "random_until", "update_after")
+        return state | {
+            **{key: getattr(self, key) for key in shared},
+            **self.members[i].state_dict(),  # rng, noise
+            "buffer": self.buffer.member_state_dict(i, with_buffer),
+            "update_noise": self.update_noise.member_state_dict(i),
+            "guard": self.guard.member_state_dict(i),
+        }
 
+    @torch.no_grad()
     def load_member_state_dict(self, i: int, state: dict) -> None:
-        load_member_state_dict(self, i, state)
+        """Load a single agent's ``state_dict()`` into member ``i`` of this agent.
 
-
-# --- a seed population's members one at a time: cut out as single agents, loaded back ----------
-# A single agent is a population of one, so member i cut out is exactly a single agent's
-# state_dict(), and a population's is the list of its members'. A member's state loads into an
-# ordinary agent (walkers.evaluate, walkers.collect, resume= to continue it alone) or back into a
-# population (resume=[id,id,...]).
-def member_state_dict(agent: ActorCritic, i: int, with_buffer: bool = False) -> dict:
-    """Member ``i`` of ``agent`` as a single agent's ``state_dict()``: its slice of every
-    per-member part (``agent.member_cuts``: networks, targets, Adam moments, ...), its RNG,
-    noise, buffer and guard counters; the shared counters."""
-    state = {}
-    for name, cut in agent.member_cuts(i).items():
-        part = getattr(agent, name)
-        if isinstance(part, torch.optim.Optimizer):
-            optimizer_state = part.state_dict()
-            for index, moments in list(optimizer_state["state"].items()):
-                # a new dict: state_dict() shares the live tensors
-                sliced = {key: moments[key][cut].clone() for key in ADAM_MOMENTS}
-                optimizer_state["state"][index] = moments | sliced
-            state[name] = optimizer_state
-        else:
-            state[name] = {k: v[cut].clone() for k, v in part.state_dict().items()}
-    shared = ("steps", "num_updates", "random_until", "update_after")
-    return state | {
-        **{key: getattr(agent, key) for key in shared},
-        **agent.members[i].state_dict(),  # rng, noise
-        "buffer": agent.buffer.member_state_dict(i, with_buffer),
-        "update_noise": agent.update_noise.member_state_dict(i),
-        "guard": agent.guard.member_state_dict(i),
-    }
-
-
-@torch.no_grad()
-def load_member_state_dict(agent: ActorCritic, i: int, state: dict) -> None:
-    """Load a single agent's ``state_dict()`` into member ``i`` of ``agent``.
-
-    Counters (env steps, updates, Adam's step count) are shared, so every member must be at the
-    same update (``walkers.train`` checks); they are taken from the last member loaded.
-    """
-    for name, cut in agent.member_cuts(i).items():
-        part = getattr(agent, name)
-        if isinstance(part, torch.optim.Optimizer):
-            _load_optimizer_member(part, cut, state[name]["state"])
-        else:
-            for key, value in part.state_dict().items():
-                value[cut] = state[name][key]
-    agent.load_counters(state)
-    agent.members[i].load_state_dict(state)
-    agent.buffer.load_member_state_dict(i, state["buffer"])
-    if "update_noise" in state:  # saved before the update's noise had streams of its own
-        agent.update_noise.load_member_state_dict(i, state["update_noise"])
-    agent.guard.load_member_state_dict(i, state["guard"])
-    agent.refill_if_lost(state["buffer"])
+        Counters (env steps, updates, Adam's step count) are shared, so every member must be at the
+        same update (``walkers.train`` checks); they are taken from the last member loaded.
+        """
+        for name, cut in self.member_cuts(i).items():
+            part = getattr(self, name)
+            if isinstance(part, torch.optim.Optimizer):
+                _load_optimizer_member(part, cut, state[name]["state"])
+            else:
+                for key, value in part.state_dict().items():
+                    value[cut] = state[name][key]
+        self.load_counters(state)
+        self.members[i].load_state_dict(state)
+        self.buffer.load_member_state_dict(i, state["buffer"])
+        if "update_noise" in state:  # saved before the update's noise had streams of its own
+            self.update_noise.load_member_state_dict(i, state["update_noise"])
+        self.guard.load_member_state_dict(i, state["guard"])
+        self.refill_if_lost(state["buffer"])
 
 
 def _load_optimizer_member(optimizer: torch.optim.Optimizer, cut: slice, saved_state: dict):
@@ -567,10 +555,10 @@ class MemberAgent(Policy):
         return action.cpu().numpy().astype(np.float32)
 
     def state_dict(self, with_buffer: bool = False) -> dict:
-        return member_state_dict(self.population, self.index, with_buffer)
+        return self.population.member_state_dict(self.index, with_buffer)
 
     def load_state_dict(self, state: dict) -> None:
-        load_member_state_dict(self.population, self.index, state)
+        self.population.load_member_state_dict(self.index, state)
 
     def resume_notes(self) -> dict[str, str]:
         return self.population.resume_notes()

@@ -9,7 +9,8 @@ the median of the ``perf/sps`` it logged (env steps/s since the previous log) on
 run for one log window. Settings: ``torch_threads`` 1, 2 and all cores (``null``: torch's own
 default), each also with OpenMP told not to spin (``OMP_WAIT_POLICY=PASSIVE``), and walkers'
 default (``auto``, whatever ``conf/train.yaml`` says today), and for TD3 and SAC one thread with
-the whole update compiled (``algo.compile=true``). Conditions: ``idle`` (nothing else
+the whole update compiled (``algo.compile=true``), where the CPU multiplies bfloat16 natively
+also with ``algo.precision=bf16``. Conditions: ``idle`` (nothing else
 of ours runs) and ``1 core busy`` (a plain Python busy loop at normal priority for the whole
 measurement, as a laptop's browser or a second job). Contenders take turns within a condition,
 so noise hits all alike; the table gives each one's median and its ratio to the best setting in
@@ -29,6 +30,8 @@ from pathlib import Path
 
 from mlflow.tracking import MlflowClient
 from rounds import alternate
+
+from walkers.agents.base import cpu_has_native_bf16
 
 #: Per algorithm: the warm-up (env steps before updates) and the budget of a measured run.
 RUNS = {
@@ -53,6 +56,9 @@ def settings(cores: int, algo: str) -> dict[str, tuple[str, dict]]:
     }
     if algo in COMPILED:  # the same thread, the whole update compiled (an arm of its own)
         rows["1 thread, algo.compile=true"] = ("torch_threads=1 algo.compile=true", {})
+        if cpu_has_native_bf16():  # and its matmuls in bfloat16 (another arm)
+            bf16 = "torch_threads=1 algo.compile=true algo.precision=bf16"
+            rows["1 thread, algo.compile=true algo.precision=bf16"] = (bf16, {})
     for n in sorted({2, cores}):
         name = "all cores" if n == cores else f"{n} threads"
         rows[f"{name} ({n})"] = (f"torch_threads={n}", {})

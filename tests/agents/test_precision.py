@@ -13,7 +13,7 @@ from tests.conftest import compose_cfg
 from walkers.agents.base import Transition
 from walkers.agents.factory import defaults_for
 from walkers.agents.sac import SAC
-from walkers.agents.sb3.arguments import NotExpressible, sb3_arguments
+from walkers.agents.sb3.arguments import sb3_arguments
 from walkers.agents.td3 import TD3
 from walkers.errors import ConfigError
 from walkers.training.settings import validate
@@ -99,5 +99,5 @@ def test_an_unknown_precision_is_refused_in_one_line():
 
 def test_sb3_twins_refuse_bf16_in_one_line():
     hyperparameters = defaults_for(TD3, precision="bf16")
-    with pytest.raises(NotExpressible, match=r"^algo.precision='bf16' cannot be expressed"):
+    with pytest.raises(ConfigError, match=r"^algo.precision='bf16' cannot be expressed"):
         sb3_arguments("td3", hyperparameters)

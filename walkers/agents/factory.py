@@ -9,7 +9,6 @@ from omegaconf import DictConfig, OmegaConf
 
 from walkers.agents.base import Agent, resolve_device
 from walkers.agents.declarations.schemas import defaults, schema_of
-from walkers.agents.sb3.arguments import NotExpressible
 from walkers.agents.sb3.twin import SB3Twin
 from walkers.errors import ConfigError
 
@@ -26,10 +25,7 @@ def build_agent(cfg: DictConfig, spaces: dict, **data) -> Agent:
     kwargs = OmegaConf.to_container(cfg.algo, resolve=True)
     name = kwargs.pop("name", None)
     if cfg.get("impl", "walkers") == "sb3":  # Stable-Baselines3's twin of the algorithm
-        try:
-            return SB3Twin(name, kwargs, **spaces, seed=cfg.seed, device=cfg.device)
-        except NotExpressible as e:
-            raise ConfigError(str(e)) from None
+        return SB3Twin(name, kwargs, **spaces, seed=cfg.seed, device=cfg.device)
     try:
         # partial, then called: Hydra would turn a dataset object into a config node
         factory = hydra.utils.instantiate(

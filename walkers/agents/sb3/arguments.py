@@ -13,6 +13,8 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
+from walkers.errors import ConfigError
+
 #: The algorithms with a twin in Stable-Baselines3 (or its contrib package), as module.Class.
 SB3_CLASSES = {
     "td3": "stable_baselines3.TD3",
@@ -121,19 +123,16 @@ MAPPING: dict[str, dict[str, str]] = {
 }
 
 
-class NotExpressible(ValueError):
-    """A walkers setting that SB3's twin cannot express."""
-
-
-def _refuse(algo: str, key: str, value, allowed: str) -> NotExpressible:
-    return NotExpressible(
+def _refuse(algo: str, key: str, value, allowed: str) -> ConfigError:
+    """A walkers setting that SB3's twin cannot express, as a one-line error."""
+    return ConfigError(
         f"algo.{key}={value!r} cannot be expressed with impl=sb3 ({algo}): must be {allowed}"
     )
 
 
 def check_algorithm(algo: str) -> None:
     if algo not in SB3_CLASSES:
-        raise NotExpressible(
+        raise ConfigError(
             f"impl=sb3 is not available for algo={algo}: Stable-Baselines3 twins exist for "
             + ", ".join(SB3_CLASSES)
             + " (impl=walkers trains the others)"
@@ -146,12 +145,13 @@ def sb3_arguments(algo: str, hp: Mapping) -> dict:
     Returns ``{"class": name, "kwargs": {...}, "noise": (kind, sigma) | None,
     "normalize": {...} | None, "net_arch": ..., "activation": ...}``: the parts that need SB3
     objects (noise, schedules, activation functions, VecNormalize) as plain descriptions, which
-    :mod:`walkers.agents.sb3.twin` turns into objects. Raises :class:`NotExpressible`.
+    :mod:`walkers.agents.sb3.twin` turns into objects. A setting SB3 cannot express raises
+    :class:`~walkers.errors.ConfigError`.
     """
     check_algorithm(algo)
     unknown = sorted(set(hp) - set(MAPPING[algo]) - {"_target_", "name"})
     if unknown:
-        raise NotExpressible(
+        raise ConfigError(
             f"algo.{unknown[0]} has no Stable-Baselines3 counterpart for {algo} "
             f"(impl=sb3 maps {', '.join(MAPPING[algo])})"
         )

@@ -90,26 +90,27 @@ def guarded_agent_step(optimizer, loss, max_grad_norm, scheduler=None):
     """One agent's step as PPO, REINFORCE and the Decision Transformer write it."""
     optimizer.zero_grad(set_to_none=True)
     loss.backward()
-    step = clip_or_skip(optimizer, loss, max_grad_norm)
+    skipped, grad_norm = clip_or_skip(optimizer, loss, max_grad_norm)
     optimizer.step()
     if scheduler is not None:
         scheduler.step()
-    return step
+    return skipped, grad_norm
 
 
 def test_an_agent_step_clips_like_clip_grad_norm_and_returns_the_norm_before():
     w = torch.nn.Parameter(torch.tensor([3.0, 4.0]))
     optimizer = torch.optim.SGD([w], lr=1.0, fused=True)
-    step = guarded_agent_step(optimizer, (w * w).sum() / 2, max_grad_norm=1.0)  # gradient w
-    assert step.skipped.item() == 0.0 and step.grad_norm.item() == 5.0
+    skipped, grad_norm = guarded_agent_step(optimizer, (w * w).sum() / 2, max_grad_norm=1.0)
+    assert skipped.item() == 0.0 and grad_norm.item() == 5.0  # the gradient is w: norm 5
     assert torch.allclose(w, torch.tensor([3.0 - 0.6, 4.0 - 0.8]))  # a step of norm 1
 
 
 def test_a_skipped_agent_step_still_advances_its_learning_rate_schedule():
     w, optimizer = _sqrt_members([0.0])
     schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: step + 1)
-    step = guarded_agent_step(optimizer, w.sum().sqrt(), max_grad_norm=1.0, scheduler=schedule)
-    assert step.skipped.item() == 1.0 and w.item() == 0.0
+    loss = w.sum().sqrt()
+    skipped, _ = guarded_agent_step(optimizer, loss, max_grad_norm=1.0, scheduler=schedule)
+    assert skipped.item() == 1.0 and w.item() == 0.0
     assert schedule.last_epoch == 1 and optimizer.param_groups[0]["lr"] == 0.2
 
 

@@ -163,16 +163,16 @@ class DecisionTransformer(Agent):
         loss = (squared_error * b.mask).sum() / b.mask.sum()
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
-        step = clip_or_skip(self.optimizer, loss, self.grad_clip)  # NaN/inf: skipped
+        skipped, grad_norm = clip_or_skip(self.optimizer, loss, self.grad_clip)  # NaN/inf
         self.optimizer.step()
         # the schedule counts updates, skipped or not (stepping it only after a taken step would
         # need the verdict on the host, a sync)
         self.scheduler.step()
-        self.guard.record(step.skipped)  # NaN/inf: the step was skipped (the warm-up goes on)
+        self.guard.record(skipped)  # NaN/inf: the step was skipped (the warm-up goes on)
         self.num_updates += 1
         return {
             "loss/action": loss.detach(),
-            "train/grad_norm": step.grad_norm,
+            "train/grad_norm": grad_norm,
         } | self.guard.metrics()
 
     # --- checkpoints ------------------------------------------------------------------------

@@ -296,9 +296,9 @@ class PPO(Agent):
 
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
-        step = clip_or_skip(self.optimizer, loss, self.max_grad_norm)  # NaN/inf: skipped
+        skipped, grad_norm = clip_or_skip(self.optimizer, loss, self.max_grad_norm)  # NaN/inf
         self.optimizer.step()
-        self.guard.record(step.skipped)
+        self.guard.record(skipped)
         with torch.no_grad():  # diagnostics (k3 estimator of KL(old || new), Schulman 2020)
             approx_kl = ((ratio - 1) - log_ratio).mean()
             clip_fraction = ((ratio - 1).abs() > self.clip_coef).float().mean()
@@ -308,7 +308,7 @@ class PPO(Agent):
             "entropy": entropy.detach(),
             "kl": approx_kl,
             "clip": clip_fraction,
-            "grad": step.grad_norm,
+            "grad": grad_norm,
         }
 
     def _anneal_learning_rate(self) -> float:

@@ -133,21 +133,20 @@ class Reinforce(Agent):
         loss = -(log_prob * advantages).mean() - self.entropy_coef * entropy
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
-        step = clip_or_skip(self.optimizer, loss, self.max_grad_norm)  # NaN/inf: skipped
+        skipped, grad_norm = clip_or_skip(self.optimizer, loss, self.max_grad_norm)  # NaN/inf
         self.optimizer.step()
-        skipped = step.skipped
         if self.value is not None:  # the baseline's step, skipped on its own NaN/inf
             self.value_optimizer.zero_grad(set_to_none=True)
             value_loss.backward()
-            baseline = clip_or_skip(self.value_optimizer, value_loss, max_grad_norm=None)
+            baseline_skipped, _ = clip_or_skip(self.value_optimizer, value_loss, max_grad_norm=None)
             self.value_optimizer.step()
-            skipped = torch.maximum(skipped, baseline.skipped)
+            skipped = torch.maximum(skipped, baseline_skipped)
         self.guard.record(skipped)  # counted once: this update skipped a step
         metrics.update(
             {
                 "loss/policy": loss.detach(),
                 "train/entropy": entropy.detach(),
-                "train/grad_norm": step.grad_norm,
+                "train/grad_norm": grad_norm,
                 "train/log_std_mean": self.policy.log_std.detach().mean(),
             }
             | self.guard.metrics()

@@ -14,8 +14,6 @@ for too long (:class:`walkers.training.bookkeeping.TrainingDiverged`).
 
 from __future__ import annotations
 
-from typing import NamedTuple
-
 import torch
 
 SKIPPED = "health/skipped_updates"
@@ -73,15 +71,6 @@ class NonFiniteGuard:
             counter.copy_(torch.as_tensor(state.get(name, torch.zeros_like(counter).tolist())))
 
 
-class GuardedStep(NamedTuple):
-    """What one guarded step did."""
-
-    #: 1.0 where the step was skipped, 0.0 where it was taken (shaped like the loss)
-    skipped: torch.Tensor
-    #: one agent's global gradient norm before clipping (None for a population)
-    grad_norm: torch.Tensor | None
-
-
 def skip_nonfinite(
     optimizer: torch.optim.Optimizer,
     member_loss: torch.Tensor,
@@ -111,17 +100,18 @@ def skip_nonfinite(
 
 def clip_or_skip(
     optimizer: torch.optim.Optimizer, loss: torch.Tensor, max_grad_norm: float | None
-) -> GuardedStep:
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Between ``backward`` and ``step`` of one agent's scalar ``loss``: the global gradient
     norm clipped to ``max_grad_norm`` (None: no clip), and the step skipped (``found_inf``)
-    where the loss or that norm is NaN/inf. The norm before clipping is returned for logging."""
+    where the loss or that norm is NaN/inf. Returns ``(skipped, grad_norm)``: 1.0 where the step
+    was skipped (shaped like the loss), and the norm before clipping, for logging."""
     params = [p for group in optimizer.param_groups for p in group["params"]]
     grad_norm = torch.nn.utils.get_total_norm(_gradients(optimizer))
     if max_grad_norm is not None:  # what clip_grad_norm_ does, reusing the norm
         torch.nn.utils.clip_grads_with_norm_(params, max_grad_norm, grad_norm)
     bad = torch.maximum(NonFiniteGuard.bad_members(loss.view(-1)), _not_finite(grad_norm).view(1))
     optimizer.found_inf = bad.min()  # the fused step is a no-op when the agent is bad
-    return GuardedStep(bad.view(loss.shape), grad_norm)
+    return bad.view(loss.shape), grad_norm
 
 
 def skipped_members(

@@ -14,7 +14,7 @@ import pytest
 from tests.conftest import TINY, all_runs, compose_cfg, filled_agent
 from walkers.agents.td3 import TD3
 from walkers.train import train
-from walkers.training import checkpoints
+from walkers.training.run import read_checkpoint
 
 
 def test_compiled_ddpg_trains_through_the_entrypoint_and_continues(store, caplog):
@@ -38,7 +38,7 @@ def test_compiled_ddpg_trains_through_the_entrypoint_and_continues(store, caplog
     path = store["client"].download_artifacts(
         run.info.run_id, "checkpoints/last.pt", str(store["path"])
     )
-    state = checkpoints.load(path)
+    state = read_checkpoint(path)
     assert state["trainer"]["step"] == 900
     moments = state["agent"]["critic_optimizer"]["state"][0]
     assert moments["step"].item() == 900 - 200 + 1  # a critic update a step from step 200 on

@@ -27,8 +27,8 @@ from walkers.agents.ppo import PPO
 from walkers.agents.reinforce import Reinforce
 from walkers.seeding import restore_torch_rng, torch_rng_state
 from walkers.train import train
-from walkers.training import checkpoints
 from walkers.training.envs import env_spaces, make_env
+from walkers.training.run import read_checkpoint
 
 
 def _sqrt_members(start: list[float]):
@@ -265,7 +265,7 @@ def test_a_checkpoint_keeps_the_cpu_generator_and_a_slot_for_cuda(store):
                        "algo.learning_starts=100", *TINY, *store["overrides"]])  # fmt: skip
     train(cfg)
     (last,) = (store["path"] / "work").glob("runs/*/checkpoints/last.pt")
-    state = checkpoints.load(last)
+    state = read_checkpoint(last)
     assert state["torch_rng"].dtype == torch.uint8 and state["torch_rng"].numel() > 0
     # on CPU no CUDA generator was used: nothing to keep; on CUDA one state per device
     expected = torch.cuda.device_count() if torch.cuda.is_initialized() else None

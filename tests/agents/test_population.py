@@ -21,9 +21,8 @@ from walkers.agents.factory import defaults_for
 from walkers.agents.td3 import TD3
 from walkers.errors import ConfigError
 from walkers.train import train
-from walkers.training import checkpoints
-from walkers.training.checkpoints import agent_from_checkpoint
 from walkers.training.envs import make_env
+from walkers.training.run import agent_from_checkpoint, read_checkpoint
 from walkers.training.settings import validate
 
 SMALL = defaults_for(
@@ -96,7 +95,7 @@ def test_population_run_logs_each_member_as_its_own_run(store):
         path = client.download_artifacts(
             run.info.run_id, "checkpoints/last.pt", str(store["path"] / run.info.run_id)
         )
-        run_cfg, agent = agent_from_checkpoint(checkpoints.load(path), env, "cpu")
+        run_cfg, agent = agent_from_checkpoint(read_checkpoint(path), env, "cpu")
         assert run_cfg.seed == int(run.data.params["seed"]) and run_cfg.population == 1
         assert agent.act(env.reset(seed=0)[0], explore=False).shape == (1,)
     env.close()
@@ -145,7 +144,7 @@ def test_a_member_trains_as_a_single_run_of_its_seed(store, algo):
         path = client.download_artifacts(
             run.info.run_id, "checkpoints/last.pt", str(store["path"] / run.info.run_id)
         )
-        weights.append(checkpoints.load(path)["agent"]["actor"])
+        weights.append(read_checkpoint(path)["agent"]["actor"])
     for key, value in weights[0].items():
         torch.testing.assert_close(value, weights[1][key], rtol=1e-4, atol=1e-5)
 

@@ -18,8 +18,8 @@ from walkers.agents.ppo import PPO, ROLLOUT_RESTART_TAG, clipped_surrogate, valu
 from walkers.data.rollouts import Rollout, gae
 from walkers.errors import ConfigError
 from walkers.train import train
-from walkers.training import checkpoints
 from walkers.training.envs import make_env
+from walkers.training.run import read_checkpoint
 from walkers.training.settings import validate
 
 SMALL = PPO_TINY
@@ -274,7 +274,7 @@ def test_evaluate_replays_the_final_evaluation_with_the_frozen_statistics(ppo_ru
     exact = 0 if not torch.cuda.is_available() else 1e-6
     assert final.step == 600 and result["return_mean"] == pytest.approx(final.value, rel=exact)
     last = ppo_run["path"] / "work" / "runs" / run.info.run_id / "checkpoints" / "last.pt"
-    state = checkpoints.load(last)
+    state = read_checkpoint(last)
     assert state["agent"]["obs_normalizer"]["count"] == pytest.approx(600, abs=1)
 
 
@@ -332,7 +332,7 @@ def test_resume_continues_the_rollout_and_the_learning_rate_schedule(store):
     path = store["client"].download_artifacts(
         run.info.run_id, "checkpoints/last.pt", str(store["path"] / "final")
     )
-    agent = checkpoints.load(path)["agent"]
+    agent = read_checkpoint(path)["agent"]
     # updates at steps 96, ..., 768; the 16 steps collected before the resume were kept:
     # (800 - 384) - 4 * 96 = 32 steps are waiting (16 + 416 - 384), not (800 - 400) % 96 = 16
     assert (agent["steps"], agent["num_updates"], agent["rollout_steps"]) == (800, 8, 32)

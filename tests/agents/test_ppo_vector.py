@@ -16,7 +16,7 @@ from walkers.agents.factory import defaults_for
 from walkers.agents.ppo import PPO
 from walkers.errors import ConfigError
 from walkers.train import train
-from walkers.training import checkpoints
+from walkers.training.run import read_checkpoint
 from walkers.training.settings import validate
 
 VECTOR = ["algo=ppo", "env=pendulum", "algo.num_envs=4", *PPO_TINY]
@@ -119,7 +119,7 @@ def test_a_vectorized_run_reports_every_envs_episodes_with_their_own_returns(vec
     path = client.download_artifacts(
         run.info.run_id, "checkpoints/last.pt", str(vector_run["path"] / "final")
     )
-    state = checkpoints.load(path)
+    state = read_checkpoint(path)
     agent = state["agent"]
     assert (agent["steps"], agent["num_updates"], agent["rollout_steps"]) == (1600, 12, 64)
     assert len(state["env_rng"]["envs"]) == 4  # every env's RNG, for a resume
@@ -167,9 +167,9 @@ def test_a_bad_num_envs_through_the_cli_exits_2_and_creates_nothing(store):
 
 
 def test_a_several_envs_config_has_its_own_update_fingerprint(monkeypatch, tmp_path):
-    """What an export records for a run of it (walkers.agents.fingerprint): driven through a
+    """What an export records for a run of it (walkers.analysis.fingerprint): driven through a
     batch of envs, and not the single env's."""
-    from walkers.agents.fingerprint import update_fingerprint
+    from walkers.analysis.fingerprint import update_fingerprint
 
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
     several = update_fingerprint(compose_cfg([*VECTOR, "algo.num_envs=2"]).algo)

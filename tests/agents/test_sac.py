@@ -21,11 +21,10 @@ from walkers.agents.crossq import CrossQ
 from walkers.agents.factory import defaults_for
 from walkers.agents.sac import SAC
 from walkers.train import train
-from walkers.training import checkpoints
 from walkers.training.checkpoint_evaluation import evaluate
-from walkers.training.checkpoints import agent_from_checkpoint
 from walkers.training.dataset_recording import collect
 from walkers.training.envs import make_env
+from walkers.training.run import agent_from_checkpoint, read_checkpoint
 
 TINY_REPLAY = {
     "batch_size": 16,
@@ -195,7 +194,7 @@ def test_a_resume_through_the_cli_continues_the_run(store):
     assert first.returncode == 0, first.stderr[-2000:]
     (run,) = all_runs(store["client"])
     run_id, work = run.info.run_id, store["path"] / "work" / "runs" / run.info.run_id
-    before = checkpoints.load(work / "resume" / "last.pt")["agent"]
+    before = read_checkpoint(work / "resume" / "last.pt")["agent"]
     resumed = run_cli(
         [f"resume={run_id}", "total_steps=900", *store["overrides"]], cwd=store["path"]
     )
@@ -207,7 +206,7 @@ def test_a_resume_through_the_cli_continues_the_run(store):
     assert evals == [300, 600, 900]
     alphas = [m.step for m in store["client"].get_metric_history(run_id, "train/alpha")]
     assert alphas == sorted(set(alphas)) and alphas[-1] == 900  # no step logged twice
-    after = checkpoints.load(work / "resume" / "last.pt")["agent"]
+    after = read_checkpoint(work / "resume" / "last.pt")["agent"]
     assert after["num_updates"] == before["num_updates"] + 300
     assert after["buffer"]["size"] == 900
     (alpha_state,) = after["alpha_optimizer"]["state"].values()
@@ -310,7 +309,7 @@ def test_evaluate_and_collect_take_a_sac_policy(pendulum_sac, tmp_path, monkeypa
     )
     assert stats["episodes"] == 3
     env = make_env({"id": "Pendulum-v1", "max_episode_steps": 200}, shaping=False)
-    state = checkpoints.load(
+    state = read_checkpoint(
         store["client"].download_artifacts(run.info.run_id, "checkpoints/last.pt", str(tmp_path))
     )
     run_cfg, agent = agent_from_checkpoint(state, env, "cpu")

@@ -36,11 +36,10 @@ from walkers.data.replay import Batch
 from walkers.errors import ConfigError
 from walkers.tracking.names import total_steps_of
 from walkers.train import train
-from walkers.training import checkpoints
 from walkers.training.checkpoint_evaluation import evaluate
-from walkers.training.checkpoints import agent_from_checkpoint
 from walkers.training.dataset_recording import collect
 from walkers.training.envs import make_env
+from walkers.training.run import agent_from_checkpoint, read_checkpoint
 from walkers.training.settings import validate
 
 SMALL = {"hidden_sizes": [16, 16], "batch_size": 32}
@@ -248,7 +247,7 @@ def test_a_td3bc_run_counts_gradient_steps_and_reports_a_normalized_score(chain)
     )
     assert "perf/gradient_steps_per_s" in run.data.metrics
     env = make_env({"id": "Pendulum-v1", "max_episode_steps": 200}, shaping=False)
-    state = checkpoints.load(
+    state = read_checkpoint(
         client.download_artifacts(run.info.run_id, "checkpoints/last.pt", str(chain["path"]))
     )
     _, agent = agent_from_checkpoint(state, env, "cpu")  # no dataset: the stats come with it
@@ -305,7 +304,7 @@ def test_a_run_stopped_inside_an_update_resumes_into_the_uninterrupted_run(chain
     (stopped,) = client.search_runs([client.get_experiment_by_name("walkers").experiment_id])
     assert stopped.info.status == "KILLED"
     path = client.download_artifacts(stopped.info.run_id, "checkpoints/last.pt", str(tmp_path))
-    assert checkpoints.load(path)["trainer"]["step"] == 100
+    assert read_checkpoint(path)["trainer"]["step"] == 100
     resumed = run_cli([f"resume={stopped.info.run_id}", *args], cwd=tmp_path, env_overrides=env)
     assert resumed.returncode == 0, resumed.stderr[-2000:]
     (reference,) = client.search_runs([client.get_experiment_by_name("whole").experiment_id])

@@ -369,7 +369,7 @@ def test_rendering_a_report_imports_no_mlflow_and_a_comparison_no_torch():
     code = (
         "import sys, walkers.analysis.report, walkers.tracking.names; "
         "assert 'mlflow' not in sys.modules, 'mlflow imported'; "
-        "from walkers.tracking.tracker import Tracker; "
+        "from walkers.tracking.client import Tracker; "
         "assert 'mlflow' in sys.modules; "
         "import walkers.compare, walkers.cli; "
         "assert 'torch' not in sys.modules, 'torch imported'"

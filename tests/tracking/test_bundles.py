@@ -332,7 +332,7 @@ def test_a_later_bundle_replaces_copies_that_went_on_since_and_refuses_two_conti
 def test_a_run_trained_by_two_codes_travels_without_a_fingerprint(studied, tmp_path):
     """An imported run carries the fingerprint its bundle recorded; continued here by other code
     (two code digests), it no longer may: its export records none, whatever the tag says."""
-    from walkers.agents.fingerprint import CODE_DIGEST_TAG
+    from walkers.training.provenance import CODE_DIGEST_TAG
 
     _, bundle, _ = studied
     here = new_store(tmp_path)
@@ -380,8 +380,8 @@ def test_a_bundle_written_anew_by_later_code_keeps_the_fingerprints_of_untouched
     """Runs whose update today's code cannot fingerprint (another code digest trained them) keep
     the fingerprint their earlier bundle recorded when it is written anew, so they still stand as
     references; a run trained on since then loses it (it may be another update's now)."""
-    from walkers.agents.fingerprint import CODE_DIGEST_TAG
     from walkers.tracking.names import LOGGED_THROUGH_TAG
+    from walkers.training.provenance import CODE_DIGEST_TAG
 
     _, bundle, _ = studied
     elsewhere = new_store(tmp_path)  # the runs as trained by an older commit, in its store

@@ -15,8 +15,7 @@ import sqlalchemy
 from mlflow.tracking import MlflowClient
 
 from walkers import interrupts
-from walkers.tracking.client import connect
-from walkers.tracking.tracker import Tracker
+from walkers.tracking.client import Tracker, connect
 
 
 class _SignalledInsideWrites(MlflowClient):

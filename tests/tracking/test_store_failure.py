@@ -13,7 +13,7 @@ import urllib.request
 import pytest
 
 from tests.conftest import spawn_cli
-from walkers.training import checkpoints
+from walkers.training.run import read_checkpoint
 
 pytestmark = pytest.mark.faults  # `make test-faults`, beside `make test` in CI
 
@@ -95,7 +95,7 @@ def test_training_outlives_its_tracking_server(tmp_path, monkeypatch):
             os.killpg(server.pid, 9)
     assert proc.returncode == 0, stderr[-3000:]  # training went on to the end
     (checkpoint,) = work.glob("runs/*/checkpoints/last.pt")
-    assert checkpoints.load(checkpoint)["trainer"]["step"] == 2000  # the last checkpoint landed
+    assert read_checkpoint(checkpoint)["trainer"]["step"] == 2000  # the last checkpoint landed
     spool = checkpoint.parent.parent / "unlogged_metrics.jsonl"  # kept in the run's folder
     assert f"saved to {spool}" in stdout + stderr  # ... and the user is told where they went
     kept = [json.loads(line) for line in spool.read_text().splitlines()]

@@ -10,23 +10,23 @@ import torch
 from tests.conftest import all_runs, compose_cfg, run_cli, signal_once_checkpointed
 from walkers.errors import CheckpointError
 from walkers.train import train
-from walkers.training import checkpoints
+from walkers.training.run import read_checkpoint, write_checkpoint
 
 
 def test_round_trip_and_no_temp_files_left(tmp_path):
-    path = checkpoints.save({"weights": torch.arange(5)}, tmp_path / "last.pt")
-    assert torch.equal(checkpoints.load(path)["weights"], torch.arange(5))
+    path = write_checkpoint({"weights": torch.arange(5)}, tmp_path / "last.pt")
+    assert torch.equal(read_checkpoint(path)["weights"], torch.arange(5))
     assert [p.name for p in tmp_path.iterdir()] == ["last.pt"]
     # a write killed mid-way (SIGKILL: no cleanup runs) left its temporary file: the next one goes
     (tmp_path / ".last.pt.9pqojf4h.tmp").write_bytes(b"half a checkpoint")
     (tmp_path / ".best.pt.x.tmp").write_bytes(b"another checkpoint's, being written")
-    checkpoints.save({"weights": torch.arange(6)}, tmp_path / "last.pt")
+    write_checkpoint({"weights": torch.arange(6)}, tmp_path / "last.pt")
     assert sorted(p.name for p in tmp_path.iterdir()) == [".best.pt.x.tmp", "last.pt"]
 
 
 @pytest.mark.parametrize("damage", ["truncate", "garbage", "not_walkers", "missing"])
 def test_damaged_checkpoint_is_a_clear_error_naming_the_file(tmp_path, damage):
-    path = checkpoints.save({"weights": torch.zeros(1000)}, tmp_path / "last.pt")
+    path = write_checkpoint({"weights": torch.zeros(1000)}, tmp_path / "last.pt")
     if damage == "truncate":
         path.write_bytes(path.read_bytes()[:500])
     elif damage == "garbage":
@@ -36,7 +36,7 @@ def test_damaged_checkpoint_is_a_clear_error_naming_the_file(tmp_path, damage):
     else:
         path.unlink()
     with pytest.raises(CheckpointError) as error:
-        checkpoints.load(path)
+        read_checkpoint(path)
     assert str(path) in str(error.value)
 
 
@@ -61,7 +61,7 @@ def test_kill_9_then_resume_finishes_at_the_right_step(store):
     path = store["client"].download_artifacts(
         run.info.run_id, "checkpoints/last.pt", str(store["path"])
     )
-    assert checkpoints.load(path)["trainer"]["step"] == 1200
+    assert read_checkpoint(path)["trainer"]["step"] == 1200
     evals = [
         m.step for m in store["client"].get_metric_history(run.info.run_id, "eval/return_mean")
     ]

@@ -10,8 +10,8 @@ import torch
 
 from tests.conftest import all_runs, compose_cfg
 from walkers.train import train
-from walkers.training import checkpoints
 from walkers.training.bookkeeping import TrainingDiverged
+from walkers.training.run import read_checkpoint
 
 
 class NaNRewardsAfter(gym.Wrapper):
@@ -60,7 +60,7 @@ def test_persistent_nan_losses_end_the_run_failed_keeping_the_last_good_checkpoi
     path = store["client"].download_artifacts(
         run.info.run_id, "checkpoints/last.pt", str(store["path"])
     )
-    state = checkpoints.load(path)
+    state = read_checkpoint(path)
     assert state["trainer"]["step"] == 300
     for name in ("actor", "critic"):  # the guard kept NaN out of the weights
         assert all(torch.isfinite(w).all() for w in state["agent"][name].values())

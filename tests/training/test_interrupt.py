@@ -19,7 +19,7 @@ from tests.conftest import (
     wait_for_uploaded_checkpoint,
 )
 from walkers import PROJECT_ROOT
-from walkers.training import checkpoints
+from walkers.training.run import read_checkpoint
 
 pytestmark = pytest.mark.faults  # `make test-faults`, beside `make test` in CI
 
@@ -51,7 +51,7 @@ def killed_with_checkpoint_then_resumed(store, run) -> int:
     path = store["client"].download_artifacts(
         run.info.run_id, "checkpoints/last.pt", str(store["path"])
     )
-    step = checkpoints.load(path)["trainer"]["step"]
+    step = read_checkpoint(path)["trainer"]["step"]
     resumed = run_cli(
         [f"resume={run.info.run_id}", f"total_steps={step + 200}", *store["overrides"]],
         cwd=store["path"],
@@ -69,7 +69,7 @@ def test_a_terminated_population_resumes_together(store):
     runs = sorted(all_runs(store["client"]), key=lambda r: r.data.params["seed"])  # member order
     assert [r.info.status for r in runs] == ["KILLED", "KILLED"]
     steps = {
-        checkpoints.load(
+        read_checkpoint(
             store["client"].download_artifacts(
                 r.info.run_id, "checkpoints/last.pt", str(store["path"] / r.info.run_id)
             )

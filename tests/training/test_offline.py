@@ -30,11 +30,10 @@ from walkers.data.datasets import OfflineData
 from walkers.data.replay import replay_episodes
 from walkers.errors import ConfigError
 from walkers.train import train
-from walkers.training import checkpoints
-from walkers.training.checkpoints import agent_from_checkpoint
+from walkers.training.bookkeeping import offline_references
 from walkers.training.dataset_recording import collect, play
 from walkers.training.envs import make_env
-from walkers.training.evaluation import offline_references
+from walkers.training.run import agent_from_checkpoint, read_checkpoint
 from walkers.training.settings import validate
 
 pytestmark = pytest.mark.slow  # `make test-slow`, beside `make test` in CI
@@ -173,7 +172,7 @@ def test_collected_episodes_load_back_the_same(offline):
     env = make_env({"id": "Pendulum-v1", "max_episode_steps": 200}, shaping=False)
     rng = np.random.default_rng(0)  # collect's default seed
     again = play(None, env, 3, seed=0, noise=0.0, rng=rng)  # policy 0: random, seeds 0..2
-    state = checkpoints.load(
+    state = read_checkpoint(
         offline["client"].download_artifacts(
             offline["td3_run"].info.run_id, "checkpoints/best.pt", str(offline["path"] / "dl")
         )
@@ -214,7 +213,7 @@ def test_replay_dataset_holds_every_training_episode(offline):
     path = offline["client"].download_artifacts(
         run_id, "checkpoints/last.pt", str(offline["path"] / "dl-last")
     )
-    episodes = replay_episodes(checkpoints.load(path)["agent"]["buffer"])
+    episodes = replay_episodes(read_checkpoint(path)["agent"]["buffer"])
     trained = [
         m.value for m in offline["client"].get_metric_history(run_id, "train/episode_return")
     ]
@@ -244,7 +243,7 @@ def test_each_target_return_is_evaluated_and_steers_the_policy(offline):
     run = _run(offline, "dt")
     for target in (HIGH, LOW):
         assert np.isfinite(_last(offline, run, f"eval/target_{target}/return_mean"))
-    state = checkpoints.load(
+    state = read_checkpoint(
         offline["client"].download_artifacts(
             run.info.run_id, "checkpoints/last.pt", str(offline["path"] / "dt_last")
         )

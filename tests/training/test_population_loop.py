@@ -23,8 +23,8 @@ from walkers.agents.declarations.schemas import SCHEMAS
 from walkers.agents.factory import defaults_for
 from walkers.seeding import eval_start_seeds
 from walkers.train import train
+from walkers.training.bookkeeping import run_episodes, run_population_episodes
 from walkers.training.envs import make_env, make_vector_env, step_vector_env
-from walkers.training.evaluation import run_episodes, run_population_episodes
 from walkers.training.loops import Lockstep, member_scalars
 
 PENDULUM = {"id": "Pendulum-v1", "max_episode_steps": 200}

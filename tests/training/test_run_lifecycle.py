@@ -50,7 +50,7 @@ def test_a_ctrl_c_inside_an_update_of_a_training_started_from_python_lands_after
 
     import torch
 
-    from walkers.training import checkpoints
+    from walkers.training.run import read_checkpoint
 
     adam_step, calls = torch.optim.Adam.step, []
 
@@ -72,7 +72,7 @@ def test_a_ctrl_c_inside_an_update_of_a_training_started_from_python_lands_after
     path = store["client"].download_artifacts(
         run.info.run_id, "checkpoints/last.pt", str(store["path"])
     )
-    state = checkpoints.load(path)
+    state = read_checkpoint(path)
     assert state["trainer"]["step"] == state["agent"]["steps"] > 100
     # every update whole: one per step from the warm-up's end (100 steps, a batch of 32), the
     # critics stepped at each, the actor at every second

@@ -22,11 +22,10 @@ from tests.conftest import (
     spawn_cli,
     wait_for_uploaded_checkpoint,
 )
-from walkers.agents.fingerprint import CODE_DIGEST_TAG
 from walkers.train import train
-from walkers.training import checkpoints
 from walkers.training.command_plan import command_key
-from walkers.training.provenance import COMMAND_KEY_TAG
+from walkers.training.provenance import CODE_DIGEST_TAG, COMMAND_KEY_TAG
+from walkers.training.run import read_checkpoint
 
 #: A run that takes long enough to be stopped after its first checkpoint.
 RUN = [
@@ -76,7 +75,7 @@ def test_the_same_command_continues_a_run_stopped_mid_way_to_its_budget(store, s
         500, 1000, 1500, 2000, 2500, 3000
     ]  # each evaluation once  # fmt: skip
     path = store["client"].download_artifacts(run_id, "checkpoints/last.pt", str(store["path"]))
-    assert checkpoints.load(path)["trainer"]["step"] == 3000
+    assert read_checkpoint(path)["trainer"]["step"] == 3000
 
     third = run_cli(args, cwd=store["path"])
     assert third.returncode == 0, third.stderr[-2000:]

@@ -21,8 +21,8 @@ from walkers.seeding import (
     first_training_reset,
     restore_env_rng,
 )
-from walkers.training import checkpoints
 from walkers.training.envs import make_env
+from walkers.training.run import read_checkpoint
 
 pytestmark = pytest.mark.slow  # `make test-slow`, beside `make test` in CI
 
@@ -93,14 +93,14 @@ def _interrupt(store, extra: list[str]) -> tuple[str, dict, str]:
     assert run.info.status == "KILLED"
     run_id = run.info.run_id
     local = store["path"] / "work" / "runs" / run_id / "resume" / "last.pt"
-    return run_id, checkpoints.load(local), stdout
+    return run_id, read_checkpoint(local), stdout
 
 
 def _final_state(store, run_id: str) -> dict:
     path = store["client"].download_artifacts(
         run_id, "checkpoints/last.pt", str(store["path"] / "final")
     )
-    return checkpoints.load(path)
+    return read_checkpoint(path)
 
 
 def test_an_interrupted_run_resumes_with_its_replay_buffer(store):
@@ -143,7 +143,7 @@ def test_a_resume_without_the_buffer_says_so_and_refills_before_updating(
     run_id, interrupted, _ = _interrupt(store, [f"algo.learning_starts={learning_starts}"])
     shutil.rmtree(store["path"] / "work" / "runs" / run_id / "resume")  # e.g. another machine
     (uploaded,) = (store["path"] / "mlartifacts").rglob(f"{run_id}/**/checkpoints/last.pt")
-    older = checkpoints.load(uploaded)  # and from an older walkers, which counted no CPU time
+    older = read_checkpoint(uploaded)  # and from an older walkers, which counted no CPU time
     del older["trainer"]["cpu_seconds"]
     torch.save(older, uploaded)
     agent = interrupted["agent"]
@@ -193,7 +193,7 @@ def test_a_run_from_before_a_hyperparameter_existed_resumes_with_its_declared_de
     assert first.returncode == 0, first.stderr[-2000:]
     (run,) = all_runs(store["client"])
     local = store["path"] / "work" / "runs" / run.info.run_id / "resume" / "last.pt"
-    older = checkpoints.load(local)
+    older = read_checkpoint(local)
     del older["config"]["algo"]["num_envs"]  # as an older walkers wrote it
     torch.save(older, local)
     resumed = run_cli(
@@ -211,10 +211,10 @@ def test_a_run_resumed_by_other_update_code_no_longer_stands_as_a_reference(stor
     """A run whose earlier steps another walkers.agents/walkers.data trained (its code digest
     tag is not today's) records both digests when resumed, says so in one line, and its export
     carries no update fingerprint, so a comparison refuses it as a reference arm."""
-    from walkers.agents.fingerprint import CODE_DIGEST_TAG, code_digest
     from walkers.analysis.references import check_like_for_like, load_references
     from walkers.errors import ConfigError
     from walkers.tracking import bundles
+    from walkers.training.provenance import CODE_DIGEST_TAG, code_digest
 
     first = run_cli(["algo=td3", "env=pendulum", *TINY, *store["overrides"]], cwd=store["path"])
     assert first.returncode == 0, first.stderr[-2000:]

@@ -6,7 +6,7 @@ import pytest
 
 from tests.conftest import TINY, all_runs, compose_cfg, metric_steps, run_cli
 from walkers.train import train
-from walkers.training import checkpoints
+from walkers.training.run import read_checkpoint
 
 TRAIN_METRICS = {"train/episode_return", "train/episode_length", "perf/sps"}
 EVAL_METRICS = {"eval/return_mean", "eval/return_std"}
@@ -45,7 +45,7 @@ def test_tiny_td3_run_is_fully_logged(store, env, budget):
     assert artifacts == {"checkpoints/last.pt", "checkpoints/best.pt"}
     assert "config.yaml" in {a.path for a in client.list_artifacts(run.info.run_id)}
 
-    last = checkpoints.load(
+    last = read_checkpoint(
         client.download_artifacts(run.info.run_id, "checkpoints/last.pt", str(store["path"]))
     )
     assert last["trainer"]["step"] == 600
@@ -101,6 +101,6 @@ def test_resume_continues_the_same_run_without_duplicate_steps(store):
     losses = metric_steps(store["client"], run_id, "loss/critic")
     assert len(losses) == len(set(losses))
     path = store["client"].download_artifacts(run_id, "checkpoints/last.pt", str(store["path"]))
-    state = checkpoints.load(path)
+    state = read_checkpoint(path)
     assert state["trainer"]["step"] == 1200 and state["agent"]["steps"] == 1200
     assert state["trainer"]["eval_steps"] == [300, 600, 900, 1200]

@@ -24,7 +24,13 @@ from walkers.analysis.arms import arm_config, run_params
 from walkers.analysis.sequential import Design
 from walkers.errors import ConfigError
 from walkers.tracking.bundle_format import BundleRuns
-from walkers.tracking.client import get_or_create_experiment, quoted, search_runs, tags_equal
+from walkers.tracking.client import (
+    Tracker,
+    get_or_create_experiment,
+    quoted,
+    search_runs,
+    tags_equal,
+)
 from walkers.tracking.names import (
     FAILED,
     FINISHED,
@@ -37,7 +43,6 @@ from walkers.tracking.names import (
     status_after,
     total_steps_of,
 )
-from walkers.tracking.tracker import Tracker
 from walkers.training.provenance import DIVERGED_TAG
 
 log = logging.getLogger("walkers")

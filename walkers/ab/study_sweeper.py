@@ -45,9 +45,8 @@ from walkers.ab.spec import StudySpec
 from walkers.analysis.sequential import A_BETTER, B_BETTER, EQUAL, Design, equal_line
 from walkers.cli import jobs_at_once, one_line_hydra_error
 from walkers.errors import ConfigError
-from walkers.tracking.client import connect, flatten
+from walkers.tracking.client import connect, ending, flatten
 from walkers.tracking.names import JOB_KEY_TAG
-from walkers.tracking.tracker import ending
 from walkers.training.provenance import DIVERGED_TAG, SEED_IN_KEY, shareable
 from walkers.training.settings import validate
 from walkers.tuning.study_runs import end_jobs_runs

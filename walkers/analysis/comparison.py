@@ -55,9 +55,8 @@ from walkers.analysis.selection import (
 from walkers.errors import ConfigError
 from walkers.secrets import redacted_uri
 from walkers.tracking import bundles
-from walkers.tracking.client import connect, search_runs
+from walkers.tracking.client import connect, search_runs, side_run
 from walkers.tracking.names import KIND_TAG
-from walkers.tracking.tracker import side_run
 
 log = logging.getLogger("walkers")
 

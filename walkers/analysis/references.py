@@ -8,7 +8,7 @@ anything is computed, and refused in one line naming the first difference:
 - the same evaluation protocol (``eval_every``, ``eval_episodes``) and the score's metric;
 - the same budget (``total_steps``);
 - the same algorithm code: the run's update fingerprint, kept in the bundle, equals the one
-  today's code gives for the run's config (:mod:`walkers.agents.fingerprint`).
+  today's code gives for the run's config (:mod:`walkers.analysis.fingerprint`).
 
 Their runs carry the param ``reference=<bundle name>``: they never pool with the store's runs of
 the same configuration (an arm is split where they meet), and the report lists the arms that came
@@ -120,7 +120,7 @@ def recorded_fingerprint(tags: Mapping[str, str], config: str | None) -> list[fl
     run's, recorded by the code that trained it), else today's code's where today's code trained
     it; none for a run trained by more than one code (resumed under another: no single update
     made it, whatever it carries)."""
-    from walkers.agents.fingerprint import of_run  # torch: see _check_code
+    from walkers.analysis.fingerprint import of_run  # torch: see _check_code
 
     if len(code_digests(tags)) > 1:
         return None
@@ -145,7 +145,7 @@ def _check_code(reference: BundleRuns, run, where: str) -> None:
         )
     # here, not at the top: a fingerprint is computed by today's torch code, and a report
     # without references (most of them) is made without importing torch
-    from walkers.agents.fingerprint import differs, update_fingerprint
+    from walkers.analysis.fingerprint import differs, update_fingerprint
 
     algo = (yaml.safe_load(record.get("config") or "") or {}).get("algo") or {}
     difference = differs(recorded, update_fingerprint(algo))

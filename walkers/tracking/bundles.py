@@ -140,7 +140,7 @@ def export_runs(
 
     Written beside ``out`` first and renamed into place: an export that fails or is stopped
     leaves no half-written bundle. ``fingerprint(tags, config)``: the update's fingerprint of a
-    run (:mod:`walkers.agents.fingerprint`), kept with it where the run has none yet; where it
+    run (:mod:`walkers.analysis.fingerprint`), kept with it where the run has none yet; where it
     cannot be had (today's code did not train the run) the earlier bundle's is kept."""
     out = Path(out)
     earlier_bundle = (out / RUNS_FILE).is_file()

@@ -12,9 +12,8 @@ from typing import Any
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
-from walkers.tracking.client import connect, get_or_create_experiment, quoted
+from walkers.tracking.client import connect, end_running, get_or_create_experiment, quoted
 from walkers.tracking.names import MULTIRUN_JOB_TAG, status_after
-from walkers.tracking.tracker import end_running
 
 log = logging.getLogger("walkers")
 

@@ -22,10 +22,9 @@ from omegaconf import DictConfig
 from walkers.errors import ConfigError
 from walkers.seeding import eval_start_seeds, held_out_start_seeds
 from walkers.tracking.client import connect, download_checkpoint, require_run
-from walkers.training.checkpoints import Checkpoint, agent_from_checkpoint
+from walkers.training.bookkeeping import record_episodes
 from walkers.training.envs import make_env
-from walkers.training.evaluation import record_episodes
-from walkers.training.run import RunFolder, TrainingRun
+from walkers.training.run import Checkpoint, RunFolder, TrainingRun, agent_from_checkpoint
 from walkers.training.video import write_videos
 
 log = logging.getLogger("walkers")

@@ -44,8 +44,7 @@ from walkers.tracking.client import (
     tags_equal,
 )
 from walkers.tracking.names import FAILED, FINISHED, JOB_KEY_TAG, differing_keys
-from walkers.training.checkpoints import Checkpoint
-from walkers.training.evaluation import References, offline_references
+from walkers.training.bookkeeping import References, offline_references
 from walkers.training.provenance import (
     COMMAND_KEY_TAG,
     DIVERGED_TAG,
@@ -53,12 +52,13 @@ from walkers.training.provenance import (
     SEED_IN_KEY,
     SUPERSEDED_TAG,
     WORKER_TAG,
+    code_digest,
     code_digests,
     dataset_params,
     job_key_of_seed,
     other_data,
 )
-from walkers.training.run import RunFolder, TrainingRun, in_training_here
+from walkers.training.run import Checkpoint, RunFolder, TrainingRun, in_training_here
 from walkers.training.settings import check_command, check_dataset_env, is_offline, validate
 
 if TYPE_CHECKING:  # Minari is imported only when a dataset is used
@@ -264,8 +264,6 @@ def _finished_runs(cfg: DictConfig, key: str, earlier: list) -> list | None:
     if cfg.job_key:
         log.info("job %s already FINISHED as run(s) %s: nothing to train", cfg.job_key, ids)
         return done
-    from walkers.agents.fingerprint import code_digest  # torch: only when it is said
-
     other_code = [r.info.run_id for r in done if code_digest() not in code_digests(r.data.tags)]
     log.info(
         "this command already FINISHED as run(s) %s%s: nothing to train (more steps: "

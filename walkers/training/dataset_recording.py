@@ -30,13 +30,11 @@ from walkers.agents.base import Agent
 from walkers.data.episodes import Episode
 from walkers.data.replay import first_steps, replay_episodes
 from walkers.errors import CheckpointError, ConfigError
-from walkers.tracking.client import connect, require_run, search_runs
+from walkers.tracking.client import connect, require_run, search_runs, side_run
 from walkers.tracking.names import FINISHED, GRADIENT_STEPS, KIND_TAG, X_AXIS_TAG
-from walkers.tracking.tracker import side_run
 from walkers.training.checkpoint_evaluation import fetch_checkpoint
-from walkers.training.checkpoints import Checkpoint, agent_from_checkpoint
 from walkers.training.envs import make_env
-from walkers.training.run import RunFolder
+from walkers.training.run import Checkpoint, RunFolder, agent_from_checkpoint
 
 log = logging.getLogger("walkers")
 

@@ -1,19 +1,21 @@
 """What a training run records about itself: its tags (algorithm, env, seed, implementation,
-commit, worker, a sweep job's place), its name, and its config as shareable params (no
-secrets).
+commit, worker, the digest of the code that trains it, a sweep job's place), its name, and its
+config as shareable params (no secrets).
 
-Readers of runs (``walkers.compare``, a study's checks) import its names too: what needs torch
-or gymnasium (the code digest, an offline run's references) is imported where a run's tags are
-made, so that a report or a refusal does not wait seconds for them."""
+Readers of runs (``walkers.compare``, a study's checks) import its names too, so it imports
+neither torch nor gymnasium (the code digest reads the source files, not the modules): a report
+or a refusal does not wait seconds for them."""
 
 from __future__ import annotations
 
 import functools
+import hashlib
 import socket
 import subprocess
 import sys
 from collections.abc import Mapping
 from importlib import metadata
+from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
@@ -21,6 +23,8 @@ from walkers import PROJECT_ROOT
 from walkers.secrets import redacted, redacted_uri
 from walkers.tracking.names import JOB_KEY_TAG, X_AXIS_TAG
 
+#: Tag: the digest of the code a run was trained by (:func:`code_digest`).
+CODE_DIGEST_TAG = "walkers.code_digest"
 #: Tag: the versions of the packages that compute a run (:data:`PACKAGES`).
 PACKAGES_TAG = "walkers.packages"
 PACKAGES = ("walkers", "torch", "numpy", "gymnasium", "mujoco", "box2d", "stable-baselines3",
@@ -52,8 +56,6 @@ def job_key_of_seed(job_key: str | None, seed: int) -> str | None:
 def new_run_tags(cfg: DictConfig, x_axis: str, data=None) -> dict[str, str]:
     """The tags a new run starts with; ``x_axis``: what its steps count; ``data``: an offline
     run's data (:class:`~walkers.training.command_plan.RunDataset`)."""
-    from walkers.agents.fingerprint import CODE_DIGEST_TAG, code_digest  # torch: module doc
-
     commit = git_commit()
     tags = {
         CODE_DIGEST_TAG: code_digest(),
@@ -74,13 +76,25 @@ def new_run_tags(cfg: DictConfig, x_axis: str, data=None) -> dict[str, str]:
     return tags
 
 
+@functools.cache
+def code_digest() -> str:
+    """The digest of what computes an update: the source of ``walkers.agents`` and
+    ``walkers.data``, and the torch version. Read once per process (as the code is loaded
+    once): a multirun's later jobs must not record files edited after their process started."""
+    root = Path(__file__).resolve().parents[1]
+    digest = hashlib.sha256(metadata.version("torch").encode())
+    for package in ("agents", "data"):
+        for path in sorted((root / package).rglob("*.py")):
+            digest.update(path.relative_to(root).as_posix().encode())
+            digest.update(path.read_bytes())
+    return digest.hexdigest()[:16]
+
+
 def resumed_code_tags(tags_before: Mapping[str, str]) -> dict[str, str]:
     """The code-digest tag of a run resumed by this process: unchanged when this code trained it
     before, else every digest that trained it, joined by ``+`` (``a+b``). Such a run's update can
     no longer be fingerprinted by one code, so it cannot stand as a reference arm: an export
-    records no fingerprint for it (:func:`walkers.agents.fingerprint.of_run`)."""
-    from walkers.agents.fingerprint import CODE_DIGEST_TAG, code_digest  # torch: module doc
-
+    records no fingerprint for it (:func:`walkers.analysis.fingerprint.of_run`)."""
     before, now = tags_before.get(CODE_DIGEST_TAG), code_digest()
     if before is None or now in code_digests(tags_before):
         return {}
@@ -90,8 +104,6 @@ def resumed_code_tags(tags_before: Mapping[str, str]) -> dict[str, str]:
 def code_digests(tags: Mapping[str, str]) -> list[str]:
     """Every code digest that trained a run, in order (one, unless it was resumed by other
     update code: :func:`resumed_code_tags`); none for a run from before the tag."""
-    from walkers.agents.fingerprint import CODE_DIGEST_TAG  # torch: module doc
-
     return [digest for digest in tags.get(CODE_DIGEST_TAG, "").split("+") if digest]
 
 

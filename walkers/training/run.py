@@ -1,4 +1,5 @@
-"""A training run from opening to its final status: its MLflow run and its local folder.
+"""A training run from opening to its final status: its MLflow run, its local folder and its
+checkpoints.
 
 :class:`TrainingRun` is what a run is to the training command, the loops' book and the plan: its
 MLflow run, its folder, its config (in one form: resolved, without secrets) and what its steps
@@ -17,22 +18,32 @@ place the local layout is spelled::
         videos/step_<step>.gif       the training gifs, uploaded
         download/                    checkpoints fetched from MLflow (resume elsewhere, evaluate)
         unlogged_metrics.jsonl       metrics MLflow never took (the store down at the end)
+
+A checkpoint (``last.pt``, ``best.pt``) is a :class:`Checkpoint`, the one type that writes and
+reads them: written atomically, verified on read (:func:`write_checkpoint`,
+:func:`read_checkpoint`), and an agent restored from one (:func:`agent_from_checkpoint`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import fcntl
 import logging
+import math
+import os
+import tempfile
 from collections.abc import Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
+import torch
 from omegaconf import DictConfig, OmegaConf
 
-from walkers.errors import ConfigError
+from walkers.agents.factory import build_agent
+from walkers.errors import CheckpointError, ConfigError
 from walkers.interrupts import RunsStopped
-from walkers.tracking.client import flatten
+from walkers.tracking.client import Tracker, ending, flatten
 from walkers.tracking.names import (
     BUDGET_TAG,
     ENV_STEPS,
@@ -42,8 +53,7 @@ from walkers.tracking.names import (
     status_after,
     total_steps_of,
 )
-from walkers.tracking.tracker import Tracker, ending
-from walkers.training.checkpoints import Checkpoint
+from walkers.training.envs import env_spaces
 from walkers.training.provenance import (
     WORKER_TAG,
     new_run_tags,
@@ -128,7 +138,7 @@ class RunFolder:
 
 
 class TrainingRun:
-    """One training run: its MLflow run (a :class:`~walkers.tracking.tracker.Tracker`), its
+    """One training run: its MLflow run (a :class:`~walkers.tracking.client.Tracker`), its
     folder, and what it is: its ``config`` (resolved and shareable: no secrets; what its params,
     ``config.yaml`` and checkpoints hold) and the ``axis`` its steps count."""
 
@@ -296,7 +306,7 @@ def in_training_here(work_dir, run_id: str) -> bool:
 @contextmanager
 def ending_and_saying_how(runs: list[TrainingRun], population: bool = False):
     """Every run in ``runs`` (a list that may grow inside the block) ends FINISHED, KILLED or
-    FAILED on the way out (:func:`walkers.tracking.tracker.ending`); then the log says how each
+    FAILED on the way out (:func:`walkers.tracking.client.ending`); then the log says how each
     ended, where to see it, and the command that continues it (a population's always, a single run's
     if it was killed). A Ctrl-C that ends runs says which, for the command's last line."""
     try:
@@ -326,3 +336,123 @@ def ending_and_saying_how(runs: list[TrainingRun], population: bool = False):
                 "continue it: python -m walkers.train resume=%s, or the same command",
                 runs[0].run_id,
             )
+
+
+FORMAT_VERSION = 1
+
+
+def write_checkpoint(state: dict, path: str | os.PathLike) -> Path:
+    """Write ``state`` to ``path`` via a temporary file and an atomic rename.
+
+    A crash mid-write leaves the previous checkpoint intact, never a truncated one; the temporary
+    file a killed write left behind is removed by the next write of the same checkpoint.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            torch.save({"format_version": FORMAT_VERSION, **state}, f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    for stale in path.parent.glob(f".{path.name}.*.tmp"):  # of a write killed mid-way (SIGKILL)
+        stale.unlink(missing_ok=True)
+    return path
+
+
+def read_checkpoint(path: str | os.PathLike) -> dict:
+    """Read a checkpoint written by :func:`write_checkpoint`; a damaged file raises
+    :class:`CheckpointError`."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint {str(path)!r} does not exist")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as e:  # truncated zip, wrong file type, unpickling garbage ...
+        raise CheckpointError(
+            f"checkpoint {str(path)!r} is corrupted or truncated ({type(e).__name__}: {e})"
+        ) from None
+    if not isinstance(state, dict) or state.get("format_version") != FORMAT_VERSION:
+        raise CheckpointError(f"checkpoint {str(path)!r} is not a walkers checkpoint")
+    return state
+
+
+@dataclass(frozen=True)
+class Checkpoint:
+    """What a run's checkpoint holds, by name (the file holds the same names, as a dict).
+
+    ``trainer`` is the loop's progress (:class:`walkers.training.bookkeeping.Progress` as a
+    dict), ``agent`` the agent's state (with or without its replay buffer), ``config`` the
+    run's composed config (shareable: no secrets), ``torch_rng`` and ``cuda_rng`` torch's
+    generators (:func:`walkers.seeding.torch_rng_state`), ``env_rng`` the training env's
+    generator (None for a run without one: offline).
+    """
+
+    trainer: dict
+    agent: dict
+    config: dict
+    torch_rng: torch.Tensor
+    cuda_rng: list | None = None
+    env_rng: dict | None = None
+
+    @property
+    def step(self) -> int:
+        """The run's step when it was written (env steps; offline: gradient steps)."""
+        return self.trainer["step"]
+
+    @property
+    def num_updates(self) -> int | None:
+        return self.agent.get("num_updates")
+
+    @property
+    def progress(self) -> dict:
+        """The loop's progress to go on from; a checkpoint from before runs counted their CPU
+        time has a total that is unknown, not 0."""
+        return {"cpu_seconds": math.nan} | self.trainer
+
+    def run_config(self) -> DictConfig:
+        return OmegaConf.create(self.config)
+
+    def with_agent(self, agent: dict) -> Checkpoint:
+        """This checkpoint with another agent state (the same agent with its replay buffer)."""
+        return dataclasses.replace(self, agent=agent)
+
+    def write(self, path: str | os.PathLike) -> Path:
+        """Write it to ``path`` atomically (:func:`write_checkpoint`); its tensors are written,
+        not copied."""
+        return write_checkpoint(
+            {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}, path
+        )
+
+    @classmethod
+    def read(cls, path: str | os.PathLike) -> Checkpoint:
+        """The checkpoint at ``path``; a damaged or foreign file raises :class:`CheckpointError`."""
+        state = read_checkpoint(path)
+        required = [f.name for f in dataclasses.fields(cls) if f.default is dataclasses.MISSING]
+        if missing := [name for name in required if name not in state]:
+            raise CheckpointError(
+                f"checkpoint {str(path)!r} holds no {missing[0]}: not a training run's checkpoint"
+            )
+        return cls.of(state)
+
+    @classmethod
+    def of(cls, state: dict) -> Checkpoint:
+        """A checkpoint from the dict a file holds (:func:`read_checkpoint`)."""
+        names = {f.name for f in dataclasses.fields(cls)}
+        return cls(**{key: value for key, value in state.items() if key in names})
+
+
+def agent_from_checkpoint(checkpoint: Checkpoint | dict, env, device: str):
+    """The run config stored in a checkpoint (or the dict a file holds: :func:`read_checkpoint`)
+    and its agent, restored, for acting on ``env``: ``(run config, agent)``."""
+    if isinstance(checkpoint, dict):
+        checkpoint = Checkpoint.of(checkpoint)
+    run_cfg = checkpoint.run_config()
+    run_cfg.device = device
+    agent = build_agent(run_cfg, env_spaces(env))
+    agent.load_state_dict(checkpoint.agent)
+    return run_cfg, agent

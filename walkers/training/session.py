@@ -27,14 +27,14 @@ from omegaconf import DictConfig
 
 from walkers.agents.factory import build_agent
 from walkers.seeding import eval_start_seeds
-from walkers.training.bookkeeping import RunBook
-from walkers.training.command_plan import Plan, plan_command
-from walkers.training.envs import env_spaces, make_env, make_vector_env, steps_in_workers
-from walkers.training.evaluation import (
+from walkers.training.bookkeeping import (
     PopulationEvaluation,
+    RunBook,
     offline_evaluation,
     with_normalized_score,
 )
+from walkers.training.command_plan import Plan, plan_command
+from walkers.training.envs import env_spaces, make_env, make_vector_env, steps_in_workers
 from walkers.training.loops import (
     train_offline,
     train_online,

@@ -57,9 +57,8 @@ from optuna.trial import TrialState
 
 from walkers.errors import ConfigError
 from walkers.secrets import redacted
-from walkers.tracking.client import connect
+from walkers.tracking.client import Tracker, connect, ending
 from walkers.tracking.hydra_callbacks import missing_on_ray_nodes
-from walkers.tracking.tracker import Tracker, ending
 from walkers.tuning.objective import check_objective, record_outcome, sweep_direction, trials_done
 from walkers.tuning.optuna_internals import stored_trial, trial_id
 from walkers.tuning.studies import (

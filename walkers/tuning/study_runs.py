@@ -13,10 +13,9 @@ from omegaconf import DictConfig, OmegaConf
 from optuna.trial import TrialState
 
 from walkers.secrets import redacted
-from walkers.tracking.client import tags_equal
+from walkers.tracking.client import Tracker, end_running, tags_equal
 from walkers.tracking.hydra_callbacks import stop_remote_jobs
 from walkers.tracking.names import JOB_KEY_TAG, KIND_TAG, status_after
-from walkers.tracking.tracker import Tracker, end_running
 from walkers.tuning.objective import DONE, trials_done
 from walkers.tuning.optuna_internals import stored_trial
 from walkers.tuning.studies import original_number

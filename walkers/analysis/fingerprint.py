@@ -25,7 +25,6 @@ nothing in the run that records it. A cache (``$XDG_CACHE_HOME/walkers``, else
 from __future__ import annotations
 
 import contextlib
-import functools
 import hashlib
 import json
 import os
@@ -40,16 +39,14 @@ from omegaconf import OmegaConf
 
 from walkers.agents.declarations.schemas import declared_since
 from walkers.errors import ConfigError
+from walkers.training.provenance import CODE_DIGEST_TAG, code_digest
 
-#: Tag: the digest of the code a run was trained by (:func:`code_digest`).
-CODE_DIGEST_TAG = "walkers.code_digest"
 #: Updates the fingerprint reads.
 UPDATES = 3
 #: How far the numbers of the same update may differ between machines.
 RELATIVE_TOLERANCE = 1e-3
 _OBS_DIM, _EPISODE = 3, 40
 _PROBES = np.random.default_rng(1).normal(size=(4, _OBS_DIM)).astype(np.float32)
-_PACKAGES = ("agents", "data")
 
 
 class NoFingerprint(Exception):
@@ -177,20 +174,6 @@ def _rngs_kept():
         finally:
             random.setstate(state[0])
             np.random.set_state(state[1])
-
-
-@functools.cache
-def code_digest() -> str:
-    """The digest of what computes an update: the source of ``walkers.agents`` and
-    ``walkers.data``, and the torch version. Read once per process (as the code is loaded
-    once): a multirun's later jobs must not record files edited after their process started."""
-    root = Path(__file__).resolve().parents[1]
-    digest = hashlib.sha256(torch.__version__.encode())
-    for package in _PACKAGES:
-        for path in sorted((root / package).rglob("*.py")):
-            digest.update(path.relative_to(root).as_posix().encode())
-            digest.update(path.read_bytes())
-    return digest.hexdigest()[:16]
 
 
 def _cache_dir() -> Path:

@@ -364,14 +364,16 @@ def test_a_run_from_before_a_hyperparameter_was_declared_joins_the_arm_of_its_de
 def test_rendering_a_report_imports_no_mlflow_and_a_comparison_no_torch():
     """The report only renders a comparison: its data model and the names of axes come from
     modules that import no MLflow (walkers.tracking.names), and a run's tracker brings it. Comparing
-    runs, and refusing a typo on any command line, import no torch (seconds of a user's wait):
-    only a reference arm's fingerprint needs it."""
+    runs, and refusing a typo on any command line, import no torch (seconds of a user's wait),
+    nor does the digest of the code that trains a run: only a reference arm's fingerprint
+    needs it."""
     code = (
         "import sys, walkers.analysis.report, walkers.tracking.names; "
         "assert 'mlflow' not in sys.modules, 'mlflow imported'; "
         "from walkers.tracking.client import Tracker; "
         "assert 'mlflow' in sys.modules; "
-        "import walkers.compare, walkers.cli; "
+        "import walkers.compare, walkers.cli, walkers.training.provenance as p; "
+        "assert len(p.code_digest()) == 16; "
         "assert 'torch' not in sys.modules, 'torch imported'"
     )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)

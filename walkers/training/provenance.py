@@ -82,7 +82,13 @@ def code_digest() -> str:
     ``walkers.data``, and the torch version. Read once per process (as the code is loaded
     once): a multirun's later jobs must not record files edited after their process started."""
     root = Path(__file__).resolve().parents[1]
-    digest = hashlib.sha256(metadata.version("torch").encode())
+    try:
+        torch_version = metadata.version("torch")  # torch.__version__, without importing torch
+    except metadata.PackageNotFoundError:  # a torch built in place, without package metadata
+        import torch
+
+        torch_version = torch.__version__
+    digest = hashlib.sha256(torch_version.encode())
     for package in ("agents", "data"):
         for path in sorted((root / package).rglob("*.py")):
             digest.update(path.relative_to(root).as_posix().encode())

@@ -24,8 +24,8 @@ from walkers.agents.factory import defaults_for
 from walkers.seeding import eval_start_seeds
 from walkers.train import train
 from walkers.training.bookkeeping import run_episodes, run_population_episodes
-from walkers.training.envs import make_env, make_vector_env, step_vector_env
-from walkers.training.loops import Lockstep, member_scalars
+from walkers.training.envs import make_env, make_vector_env
+from walkers.training.loops import Lockstep, member_scalars, step_vector_env
 
 PENDULUM = {"id": "Pendulum-v1", "max_episode_steps": 200}
 #: every algorithm that trains seed populations, from the declarations
@@ -187,7 +187,7 @@ def test_env_workers_leave_the_training_process_its_signal_handlers():
     signal.signal(signal.SIGINT, signal.default_int_handler)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
     try:
-        envs = make_vector_env(compose_cfg(["env=pendulum"]).env, 2, workers=True)
+        envs = make_vector_env(compose_cfg(["env=pendulum"]).env, 2, vector_env="async")
         try:
             now = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
             assert now == (signal.default_int_handler, signal.SIG_DFL)

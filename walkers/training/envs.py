@@ -12,13 +12,11 @@ import logging
 import multiprocessing
 import os
 import signal
-from typing import NamedTuple
 
 import gymnasium as gym
 import numpy as np
 from omegaconf import OmegaConf
 
-from walkers.agents.base import Transition
 from walkers.errors import ConfigError
 
 #: PyOpenGL (MuJoCo's renderer) says at INFO that an optional accelerator is not installed.
@@ -106,25 +104,28 @@ def steps_in_workers(vector_env: str, num_envs: int, cores: int | None = None) -
 
 
 def make_vector_env(
-    env_cfg, num_envs: int, step_info: bool = True, workers: bool = False
+    env_cfg, num_envs: int, step_info: bool = True, vector_env: str = "sync"
 ) -> gym.vector.VectorEnv:
     """``num_envs`` training envs (:func:`make_env`) stepped together, a finished episode reset
     in the same step (its last observation in ``info["final_obs"]``, its statistics in
-    ``info["final_info"]``): in this process, in turn (Gymnasium's ``SyncVectorEnv``), or with
-    ``workers`` a worker process each (``AsyncVectorEnv``: the same envs, the same numbers).
+    ``info["final_info"]``): in this process, in turn (``vector_env=sync``: Gymnasium's
+    ``SyncVectorEnv``), or a worker process each (``async``: ``AsyncVectorEnv``, the same envs,
+    the same numbers); ``auto``, the run's default, decides by the machine's cores.
     Reset with ``seed=s``, env ``i`` starts from seed ``s + i`` (Gymnasium's rule), so env 0
     starts as a single-env run of the same seed does; ``seed=[s_0, s_1, ...]`` seeds each env
     with its own (None: unseeded). ``step_info=False`` keeps only the episode statistics of each
     env's info (:class:`EpisodeStatisticsOnly`).
 
-    In this process unless the machine has the cores (:func:`steps_in_workers`, by
+    ``auto`` steps in this process unless the machine has the cores (:func:`steps_in_workers`, by
     measurement: ``make bench-envs``): on 2 cores, AsyncVectorEnv's worker processes stepped
     Walker2d-v5 at 0.38x one env alone, their messages costing more than the step; there the
     gain of several envs is acting on them as one batch."""
     same_step = gym.vector.AutoresetMode.SAME_STEP
     env_cfg = OmegaConf.to_container(env_cfg) if OmegaConf.is_config(env_cfg) else env_cfg
     one_env = functools.partial(_training_env, env_cfg, step_info)
-    if workers:  # forkserver: workers forked from a clean process, never from one holding
+    if steps_in_workers(
+        vector_env, num_envs
+    ):  # forkserver: workers forked from a clean process, never from one holding
         # CUDA or torch's threads (a multirun's second job runs in the first one's process)
         in_worker = functools.partial(_worker_env, one_env)
         return gym.vector.AsyncVectorEnv(
@@ -149,58 +150,6 @@ def _worker_env(make) -> gym.Env:
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
     return make()
-
-
-class VectorStep(NamedTuple):
-    """One step of every env of a vector env (:func:`step_vector_env`), as ``(N, ...)`` arrays."""
-
-    obs: np.ndarray  # what each env was shown before the step
-    actions: np.ndarray
-    rewards: np.ndarray
-    own_next_obs: np.ndarray  # each env's own next observation: a finished episode's last one
-    terminated: np.ndarray
-    truncated: np.ndarray
-    next_obs: np.ndarray  # what each env shows now: a finished episode's env already reset
-    info: dict
-    ended: np.ndarray  # the indices of the envs whose episode ended in the step
-
-    @property
-    def episode_over(self) -> np.ndarray:
-        return self.terminated | self.truncated
-
-    def transitions(self) -> list[Transition]:
-        """Each env's step as a :class:`Transition` (an agent that observes them one by one)."""
-        return [
-            Transition(
-                self.obs[i],
-                self.actions[i],
-                float(self.rewards[i]),
-                self.own_next_obs[i],
-                bool(self.terminated[i]),
-                bool(self.truncated[i]),
-            )  # fmt: skip
-            for i in range(len(self.rewards))
-        ]
-
-    def episode_statistics(self, i: int) -> tuple[float, int]:
-        """The true return and length of env ``i``'s episode, which ended in the step."""
-        episode = self.info["final_info"]["episode"]
-        return float(episode["r"][i]), int(episode["l"][i])
-
-
-def step_vector_env(envs: gym.vector.VectorEnv, obs: np.ndarray, actions) -> VectorStep:
-    """Step every env of ``envs`` (finishing episodes in the step, :func:`make_vector_env`)
-    from observations ``obs`` with ``actions``."""
-    next_obs, rewards, terminated, truncated, info = envs.step(actions)
-    ended = np.flatnonzero(terminated | truncated)
-    own_next_obs = next_obs
-    if len(ended):  # a finished episode's own last observation, not the next episode's first
-        own_next_obs = next_obs.copy()
-        for i in ended:
-            own_next_obs[i] = info["final_obs"][i]
-    return VectorStep(
-        obs, actions, rewards, own_next_obs, terminated, truncated, next_obs, info, ended
-    )
 
 
 def env_spaces(env: gym.Env) -> dict:

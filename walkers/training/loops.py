@@ -29,6 +29,7 @@ from __future__ import annotations
 import time
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
+from typing import NamedTuple
 
 import gymnasium as gym
 import numpy as np
@@ -40,7 +41,6 @@ from walkers.agents.common.actor_critic import ActorCritic
 from walkers.agents.sb3.twin import SB3Twin
 from walkers.interrupts import shielded, stop_noted, stops_between_steps
 from walkers.training.bookkeeping import RunBook
-from walkers.training.envs import VectorStep, step_vector_env
 
 
 def train_online(agent: Agent, env: gym.Env, book: RunBook) -> dict[str, float]:
@@ -107,6 +107,58 @@ def vectorized_step(agent: Agent, envs: gym.vector.VectorEnv, obs, losses: dict)
     agent.observe_batch(step.transitions())
     losses.update(agent.update())
     return step
+
+
+class VectorStep(NamedTuple):
+    """One step of every env of a vector env (:func:`step_vector_env`), as ``(N, ...)`` arrays."""
+
+    obs: np.ndarray  # what each env was shown before the step
+    actions: np.ndarray
+    rewards: np.ndarray
+    own_next_obs: np.ndarray  # each env's own next observation: a finished episode's last one
+    terminated: np.ndarray
+    truncated: np.ndarray
+    next_obs: np.ndarray  # what each env shows now: a finished episode's env already reset
+    info: dict
+    ended: np.ndarray  # the indices of the envs whose episode ended in the step
+
+    @property
+    def episode_over(self) -> np.ndarray:
+        return self.terminated | self.truncated
+
+    def transitions(self) -> list[Transition]:
+        """Each env's step as a :class:`Transition` (an agent that observes them one by one)."""
+        return [
+            Transition(
+                self.obs[i],
+                self.actions[i],
+                float(self.rewards[i]),
+                self.own_next_obs[i],
+                bool(self.terminated[i]),
+                bool(self.truncated[i]),
+            )  # fmt: skip
+            for i in range(len(self.rewards))
+        ]
+
+    def episode_statistics(self, i: int) -> tuple[float, int]:
+        """The true return and length of env ``i``'s episode, which ended in the step."""
+        episode = self.info["final_info"]["episode"]
+        return float(episode["r"][i]), int(episode["l"][i])
+
+
+def step_vector_env(envs: gym.vector.VectorEnv, obs: np.ndarray, actions) -> VectorStep:
+    """Step every env of ``envs`` (finishing episodes in the step:
+    :func:`walkers.training.envs.make_vector_env`) from observations ``obs`` with ``actions``."""
+    next_obs, rewards, terminated, truncated, info = envs.step(actions)
+    ended = np.flatnonzero(terminated | truncated)
+    own_next_obs = next_obs
+    if len(ended):  # a finished episode's own last observation, not the next episode's first
+        own_next_obs = next_obs.copy()
+        for i in ended:
+            own_next_obs[i] = info["final_obs"][i]
+    return VectorStep(
+        obs, actions, rewards, own_next_obs, terminated, truncated, next_obs, info, ended
+    )
 
 
 def train_offline(agent: Agent, book: RunBook) -> dict[str, float]:

@@ -34,7 +34,7 @@ from walkers.training.bookkeeping import (
     with_normalized_score,
 )
 from walkers.training.command_plan import Plan, plan_command
-from walkers.training.envs import env_spaces, make_env, make_vector_env, steps_in_workers
+from walkers.training.envs import env_spaces, make_env, make_vector_env
 from walkers.training.loops import (
     train_offline,
     train_online,
@@ -123,7 +123,7 @@ def _build_single(
         several = agent.several_envs and agent.num_envs > 1
         env = _closed_by(
             closing,
-            make_vector_env(cfg.env, agent.num_envs, workers=_workers(cfg, agent.num_envs))
+            make_vector_env(cfg.env, agent.num_envs, vector_env=cfg.get("vector_env", "auto"))
             if several
             else make_env(cfg.env),
         )
@@ -157,7 +157,8 @@ def _build_population(work: Plan, closing: ExitStack, tags: dict) -> tuple:
     cfg, k = work.cfg, work.cfg.population
     # member i's env is env i of one vector env
     envs = _closed_by(
-        closing, make_vector_env(cfg.env, k, step_info=False, workers=_workers(cfg, k))
+        closing,
+        make_vector_env(cfg.env, k, step_info=False, vector_env=cfg.get("vector_env", "auto")),
     )
     eval_envs = [_closed_by(closing, make_env(cfg.env, shaping=False)) for _ in range(k)]
     agent = build_agent(cfg, env_spaces(eval_envs[0]), population=k)
@@ -195,8 +196,3 @@ def _build_population(work: Plan, closing: ExitStack, tags: dict) -> tuple:
 def _closed_by(closing: ExitStack, env):
     closing.callback(env.close)
     return env
-
-
-def _workers(cfg: DictConfig, num_envs: int) -> bool:
-    """Whether the run's ``num_envs`` training envs step in worker processes (``vector_env``)."""
-    return steps_in_workers(cfg.get("vector_env", "auto"), num_envs)

@@ -59,7 +59,7 @@ from walkers.training.provenance import (
     other_data,
 )
 from walkers.training.run import Checkpoint, RunFolder, TrainingRun, in_training_here
-from walkers.training.settings import check_command, check_dataset_env, is_offline, validate
+from walkers.training.settings import check_command, check_dataset_env, validate
 
 if TYPE_CHECKING:  # Minari is imported only when a dataset is used
     from walkers.data.datasets import OfflineData
@@ -166,7 +166,7 @@ def plan_command(cfg: DictConfig, overrides=()) -> Plan:
             [cfg] if cfg.population == 1 else [member_config(cfg, i) for i in range(cfg.population)]
         )
         run_ids, starts = [None] * len(members), [None] * len(members)
-    data = run_dataset(cfg) if is_offline(cfg) else None
+    data = run_dataset(cfg) if cfg.get("dataset") else None  # validated: an offline run's
     if data is not None and cfg.resume:  # an offline run goes on learning from its own data
         _check_same_data(client, cfg, data)
     return Plan(cfg, client, members, run_ids, starts, data, new_run_tags)

@@ -166,7 +166,7 @@ def plan_command(cfg: DictConfig, overrides=()) -> Plan:
             [cfg] if cfg.population == 1 else [member_config(cfg, i) for i in range(cfg.population)]
         )
         run_ids, starts = [None] * len(members), [None] * len(members)
-    data = run_dataset(cfg) if cfg.get("dataset") else None  # validated: an offline run's
+    data = run_dataset(cfg) if cfg.get("dataset") else None  # validated: iff offline
     if data is not None and cfg.resume:  # an offline run goes on learning from its own data
         _check_same_data(client, cfg, data)
     return Plan(cfg, client, members, run_ids, starts, data, new_run_tags)

@@ -37,7 +37,9 @@ import torch
 import yaml
 from omegaconf import OmegaConf
 
+from walkers.agents.base import Transition
 from walkers.agents.declarations.schemas import declared_since
+from walkers.agents.factory import build_agent
 from walkers.errors import ConfigError
 from walkers.training.provenance import CODE_DIGEST_TAG, code_digest
 
@@ -105,9 +107,6 @@ def differs(recorded: list[float], now: list[float]) -> str | None:
 
 
 def _compute(algo: dict) -> list[float]:
-    from walkers.agents.base import Transition
-    from walkers.agents.factory import build_agent
-
     cfg = OmegaConf.create({"algo": algo, "device": "cpu", "seed": 0, "impl": "walkers"})
     agent = build_agent(cfg, {"obs_dim": _OBS_DIM, "action_low": [-2.0], "action_high": [2.0]})
     if agent.offline:
@@ -138,8 +137,6 @@ def _compute(algo: dict) -> list[float]:
 def _several_envs(agent) -> list[float]:
     """:func:`_compute`'s synthetic task on ``agent.num_envs`` envs acting as one batch (each its
     own stream of states, the episodes ending together)."""
-    from walkers.agents.base import Transition
-
     n, rng = agent.num_envs, np.random.default_rng(0)
     obs = rng.normal(size=(n, _OBS_DIM)).astype(np.float32)
     numbers: list[float] = []

@@ -123,10 +123,9 @@ def make_vector_env(
     same_step = gym.vector.AutoresetMode.SAME_STEP
     env_cfg = OmegaConf.to_container(env_cfg) if OmegaConf.is_config(env_cfg) else env_cfg
     one_env = functools.partial(_training_env, env_cfg, step_info)
-    if steps_in_workers(
-        vector_env, num_envs
-    ):  # forkserver: workers forked from a clean process, never from one holding
-        # CUDA or torch's threads (a multirun's second job runs in the first one's process)
+    if steps_in_workers(vector_env, num_envs):
+        # forkserver: workers forked from a clean process, never from one holding CUDA or
+        # torch's threads (a multirun's second job runs in the first one's process)
         in_worker = functools.partial(_worker_env, one_env)
         return gym.vector.AsyncVectorEnv(
             [in_worker] * num_envs, autoreset_mode=same_step, context="forkserver"
